@@ -1,0 +1,220 @@
+"""Calibration boards (chessboard and ChArUco): description, 3D corner layout, and a true-size image.
+
+Board frame: origin at the top-left outer corner of the square grid, x to the right along the
+columns, y down along the rows, z = 0 on the board surface (OpenCV's object-point convention).
+Metres throughout. Board images include a white margin; pixel (i, j) of an image made at `ppm`
+pixels per metre covers board coordinates [i/ppm - margin, (i+1)/ppm - margin) in x (likewise y).
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Union
+
+import cv2
+import numpy as np
+
+from calibration.camera import CalibrationError
+
+ARUCO_DICTIONARIES = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+
+
+@dataclass(frozen=True)
+class ChessboardSpec:
+    """A chessboard of `cols` x `rows` inner corners and square edge `square_size` metres."""
+
+    cols: int
+    rows: int
+    square_size: float
+    margin: float | None = None
+
+    type = "chessboard"
+
+    @property
+    def squares(self) -> tuple[int, int]:
+        return self.cols + 1, self.rows + 1
+
+    @property
+    def margin_m(self) -> float:
+        return self.square_size if self.margin is None else self.margin
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        """Physical size of the square grid (without margin)."""
+        sx, sy = self.squares
+        return sx * self.square_size, sy * self.square_size
+
+    @property
+    def n_corners(self) -> int:
+        return self.cols * self.rows
+
+    def object_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Corner ids (row-major, as findChessboardCorners orders them) and their board-frame points."""
+        j, i = np.mgrid[0 : self.rows, 0 : self.cols]
+        pts = np.stack([(i.ravel() + 1) * self.square_size, (j.ravel() + 1) * self.square_size, np.zeros(i.size)], axis=1)
+        return np.arange(self.n_corners), pts.astype(np.float64)
+
+    def image(self, ppm: float) -> np.ndarray:
+        """The board (with margin) as a uint8 grey image at `ppm` pixels per metre."""
+        m = self.margin_m
+        w_m, h_m = self.size_m
+        W = int(round((w_m + 2 * m) * ppm))
+        H = int(round((h_m + 2 * m) * ppm))
+        # Sample square parity at pixel centres, in board coordinates.
+        x = (np.arange(W) + 0.5) / ppm - m
+        y = (np.arange(H) + 0.5) / ppm - m
+        ix = np.floor(x / self.square_size).astype(int)
+        iy = np.floor(y / self.square_size).astype(int)
+        sx, sy = self.squares
+        inside = (ix[None, :] >= 0) & (ix[None, :] < sx) & (iy[:, None] >= 0) & (iy[:, None] < sy)
+        black = ((ix[None, :] + iy[:, None]) % 2 == 0) & inside
+        return np.where(black, 0, 255).astype(np.uint8)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {"type": "chessboard", "cols": self.cols, "rows": self.rows, "square_size": self.square_size}
+        if self.margin is not None:
+            d["margin"] = self.margin
+        return d
+
+
+@dataclass(frozen=True)
+class CharucoSpec:
+    """A ChArUco board of `squares_x` x `squares_y` squares with ArUco markers in the white squares."""
+
+    squares_x: int
+    squares_y: int
+    square_size: float
+    marker_size: float
+    dictionary: str = "DICT_5X5_100"
+    margin: float | None = None
+
+    type = "charuco"
+
+    @property
+    def squares(self) -> tuple[int, int]:
+        return self.squares_x, self.squares_y
+
+    @property
+    def margin_m(self) -> float:
+        return self.square_size * 0.5 if self.margin is None else self.margin
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        return self.squares_x * self.square_size, self.squares_y * self.square_size
+
+    @property
+    def n_corners(self) -> int:
+        return (self.squares_x - 1) * (self.squares_y - 1)
+
+    def cv_dictionary(self):
+        return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+
+    def cv_board(self):
+        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_size, self.marker_size, self.cv_dictionary())
+
+    def object_points(self) -> tuple[np.ndarray, np.ndarray]:
+        pts = np.asarray(self.cv_board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+        return np.arange(len(pts)), pts
+
+    def image(self, ppm: float) -> np.ndarray:
+        m = self.margin_m
+        w_m, h_m = self.size_m
+        gw, gh = int(round(w_m * ppm)), int(round(h_m * ppm))
+        grid = self.cv_board().generateImage((gw, gh), marginSize=0, borderBits=1)
+        mp = int(round(m * ppm))
+        return cv2.copyMakeBorder(grid, mp, mp, mp, mp, cv2.BORDER_CONSTANT, value=255)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {
+            "type": "charuco",
+            "squares_x": self.squares_x,
+            "squares_y": self.squares_y,
+            "square_size": self.square_size,
+            "marker_size": self.marker_size,
+            "dictionary": self.dictionary,
+        }
+        if self.margin is not None:
+            d["margin"] = self.margin
+        return d
+
+
+BoardSpec = Union[ChessboardSpec, CharucoSpec]
+
+
+def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
+    """Validate a board description; every problem is one CalibrationError naming the key."""
+    if not isinstance(d, dict):
+        raise CalibrationError(f"{where}: expected a table")
+    kind = d.get("type")
+    if kind == "chessboard":
+        allowed = {"type": None, "cols": int, "rows": int, "square_size": float, "margin": float}
+    elif kind == "charuco":
+        allowed = {
+            "type": None,
+            "squares_x": int,
+            "squares_y": int,
+            "square_size": float,
+            "marker_size": float,
+            "dictionary": str,
+            "margin": float,
+        }
+    else:
+        raise CalibrationError(f"{where}: 'type' must be \"chessboard\" or \"charuco\", not {kind!r}")
+    for key in d:
+        if key not in allowed:
+            raise CalibrationError(f"{where}: unknown key '{key}' (allowed: {', '.join(allowed)})")
+    vals: dict[str, Any] = {}
+    for key, typ in allowed.items():
+        if typ is None:
+            continue
+        if key not in d:
+            if key in ("margin", "dictionary"):
+                continue
+            raise CalibrationError(f"{where}: missing key '{key}'")
+        v = d[key]
+        if typ is int and (not isinstance(v, int) or isinstance(v, bool)):
+            raise CalibrationError(f"{where}: '{key}' must be an integer, got {v!r}")
+        if typ is float and (not isinstance(v, (int, float)) or isinstance(v, bool)):
+            raise CalibrationError(f"{where}: '{key}' must be a number, got {v!r}")
+        if typ is str and not isinstance(v, str):
+            raise CalibrationError(f"{where}: '{key}' must be a string, got {v!r}")
+        vals[key] = float(v) if typ is float else v
+    if kind == "chessboard":
+        if vals["cols"] < 2 or vals["rows"] < 2:
+            raise CalibrationError(f"{where}: 'cols' and 'rows' count inner corners and must be at least 2")
+        if vals["cols"] == vals["rows"]:
+            raise CalibrationError(f"{where}: a square chessboard ({vals['cols']}x{vals['rows']}) is ambiguous in orientation; use cols != rows")
+        if not 0 < vals["square_size"] < 10:
+            raise CalibrationError(f"{where}: 'square_size' must be in metres, between 0 and 10, got {vals['square_size']}")
+        return ChessboardSpec(**vals)
+    if vals["squares_x"] < 2 or vals["squares_y"] < 2:
+        raise CalibrationError(f"{where}: 'squares_x' and 'squares_y' must be at least 2")
+    if not 0 < vals["square_size"] < 10:
+        raise CalibrationError(f"{where}: 'square_size' must be in metres, between 0 and 10, got {vals['square_size']}")
+    if not 0 < vals["marker_size"] < vals["square_size"]:
+        raise CalibrationError(
+            f"{where}: 'marker_size' ({vals['marker_size']}) must be positive and smaller than 'square_size' ({vals['square_size']})"
+        )
+    dic = vals.get("dictionary", "DICT_5X5_100")
+    if dic not in ARUCO_DICTIONARIES:
+        raise CalibrationError(f"{where}: unknown 'dictionary' {dic!r} (e.g. DICT_4X4_50, DICT_5X5_100, DICT_6X6_250)")
+    n_markers = (vals["squares_x"] * vals["squares_y"]) // 2
+    capacity = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dic)).bytesList.shape[0]
+    if n_markers > capacity:
+        raise CalibrationError(f"{where}: a {vals['squares_x']}x{vals['squares_y']} board needs {n_markers} markers but {dic} has {capacity}")
+    vals["dictionary"] = dic
+    return CharucoSpec(**vals)
+
+
+def load_board(path: str | Path) -> BoardSpec:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationError(f"{path}: no such board file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise CalibrationError(f"{path}: not valid TOML ({exc})") from None
+    if "board" in data and isinstance(data["board"], dict):
+        data = data["board"]
+    return board_from_dict(data, where=str(path))

@@ -1,0 +1,1 @@
+"""Splat-SAP: networks (torch), training, ONNX export, and the torch-free ONNX Runtime pipeline."""

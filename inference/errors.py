@@ -1,0 +1,5 @@
+"""Errors of the model pipeline (export, runtime)."""
+
+
+class InferenceError(Exception):
+    exit_code = 2

@@ -1,0 +1,113 @@
+"""The camera contract every backend implements.
+
+A backend is one module in `rig/cameras/` that defines `SCHEME`, `discover()` and `open(uri, settings)`.
+`open` returns a configured `Camera`; the caller then `start()`s it, pulls Frames with `get_frame()`,
+fires `software_trigger()` when the camera is in software-trigger mode, and `stop()`s / `close()`s it.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import asdict, dataclass, field
+from typing import Any, Optional
+
+from rig.config import CameraConfig
+from sync.frames import Frame
+
+
+@dataclass
+class DeviceInfo:
+    """A device found by a backend's `discover()`."""
+
+    uri: str
+    backend: str
+    model: str = ""
+    serial: str = ""
+    vendor: str = ""
+    address: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class CameraStats:
+    """Counters a camera keeps while streaming."""
+
+    delivered: int = 0  # frames handed to the caller
+    dropped: int = 0  # frames the camera produced but the host never received (gaps in frame ids)
+    incomplete: int = 0  # buffers that arrived damaged and were discarded
+    timeouts: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.update(d.pop("extra"))
+        return d
+
+
+class Camera(abc.ABC):
+    """One open camera. Use as a context manager to be sure it is closed."""
+
+    def __init__(self, uri: str, settings: CameraConfig):
+        self.uri = uri
+        self.settings = settings
+        self.name = settings.name
+        self.stats = CameraStats()
+        self._last_frame_id: Optional[int] = None
+
+    # lifecycle -----------------------------------------------------------------------------------
+    @abc.abstractmethod
+    def start(self) -> None:
+        """Begin acquisition (in trigger modes the camera then waits for triggers)."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """End acquisition; frames already delivered stay valid."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the device. Safe to call twice."""
+
+    # frames --------------------------------------------------------------------------------------
+    @abc.abstractmethod
+    def get_frame(self, timeout: float = 1.0) -> Frame:
+        """The next frame; raises CameraTimeout or CameraDisconnected."""
+
+    @abc.abstractmethod
+    def software_trigger(self) -> None:
+        """Fire one software trigger (trigger = "software")."""
+
+    def hardware_trigger(self, pulse_index: int, time_ns: int) -> None:
+        """An edge on the hardware trigger input. Real cameras get it by wire; emulated ones here."""
+        raise NotImplementedError(f"{self.uri}: no emulated trigger input on this backend")
+
+    # bookkeeping shared by all backends ----------------------------------------------------------
+    FRAME_ID_MODULUS: Optional[int] = None  # wrap of the device's frame counter, None = no wrap
+
+    def _account(self, frame_id: int) -> int:
+        """Count gaps in frame ids (dropped frames); returns how many were missing before this one."""
+        missing = 0
+        last = self._last_frame_id
+        if last is not None:
+            step = frame_id - last
+            if self.FRAME_ID_MODULUS and step <= 0:
+                step += self.FRAME_ID_MODULUS - 1  # GigE Vision ids skip 0 when they wrap
+            if step > 1:
+                missing = step - 1
+        self._last_frame_id = frame_id
+        self.stats.dropped += missing
+        self.stats.delivered += 1
+        return missing
+
+    def __enter__(self) -> "Camera":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self.stop()
+        finally:
+            self.close()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name} {self.uri}>"

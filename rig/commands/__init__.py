@@ -1,0 +1,1 @@
+"""Subcommand groups of the `rig` CLI: one module per group, each with `register(subparsers)`."""

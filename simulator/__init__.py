@@ -1,0 +1,1 @@
+"""Synthetic scene, renderer with ground truth, virtual sensors and hardware emulators."""

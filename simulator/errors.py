@@ -1,0 +1,5 @@
+"""Errors of the simulator."""
+
+
+class SimulatorError(Exception):
+    exit_code = 2
