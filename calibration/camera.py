@@ -195,7 +195,7 @@ def look_at(eye: Iterable[float], target: Iterable[float], up: Iterable[float] =
     up = np.asarray(up, dtype=np.float64)
     z = target - eye
     z /= np.linalg.norm(z)
-    x = np.cross(z, -up)
+    x = np.cross(z, up)  # right = forward x up, so that y = z x x points along -up (image down)
     if np.linalg.norm(x) < 1e-9:
         raise ValueError("look_at: view direction parallel to up")
     x /= np.linalg.norm(x)
