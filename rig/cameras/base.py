@@ -55,6 +55,7 @@ class Camera(abc.ABC):
         self.name = settings.name
         self.stats = CameraStats()
         self._last_frame_id: Optional[int] = None
+        self._last_unwrapped = 0
 
     # lifecycle -----------------------------------------------------------------------------------
     @abc.abstractmethod
@@ -70,9 +71,15 @@ class Camera(abc.ABC):
         """Release the device. Safe to call twice."""
 
     # frames --------------------------------------------------------------------------------------
-    @abc.abstractmethod
     def get_frame(self, timeout: float = 1.0) -> Frame:
-        """The next frame; raises CameraTimeout or CameraDisconnected."""
+        """The next frame; raises CameraTimeout or CameraDisconnected. Counts gaps in frame ids."""
+        frame = self._read_frame(timeout)
+        frame.frame_id = self._account(frame.frame_id)
+        return frame
+
+    @abc.abstractmethod
+    def _read_frame(self, timeout: float) -> Frame:
+        """Backend part of get_frame: wait for and decode the next frame."""
 
     @abc.abstractmethod
     def software_trigger(self) -> None:
@@ -85,20 +92,25 @@ class Camera(abc.ABC):
     # bookkeeping shared by all backends ----------------------------------------------------------
     FRAME_ID_MODULUS: Optional[int] = None  # wrap of the device's frame counter, None = no wrap
 
-    def _account(self, frame_id: int) -> int:
-        """Count gaps in frame ids (dropped frames); returns how many were missing before this one."""
-        missing = 0
-        last = self._last_frame_id
-        if last is not None:
-            step = frame_id - last
+    def _account(self, device_id: int) -> int:
+        """Unwrap the device's frame counter and count gaps in it (dropped frames).
+
+        Returns the unwrapped id, which keeps increasing across wraps of a short device counter.
+        """
+        last_raw = self._last_frame_id
+        if last_raw is None:
+            unwrapped = device_id
+        else:
+            step = device_id - last_raw
             if self.FRAME_ID_MODULUS and step <= 0:
                 step += self.FRAME_ID_MODULUS - 1  # GigE Vision ids skip 0 when they wrap
             if step > 1:
-                missing = step - 1
-        self._last_frame_id = frame_id
-        self.stats.dropped += missing
+                self.stats.dropped += step - 1
+            unwrapped = self._last_unwrapped + step
+        self._last_frame_id = device_id
+        self._last_unwrapped = unwrapped
         self.stats.delivered += 1
-        return missing
+        return unwrapped
 
     def __enter__(self) -> "Camera":
         return self

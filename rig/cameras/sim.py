@@ -1,0 +1,226 @@
+"""`sim://NAME`: a virtual camera with the full camera contract, drawing images from the simulator.
+
+Timing model (all on the host monotonic clock, which is also the simulator's clock while live):
+an exposure request arrives (free-run tick at `fps`, a software trigger, or a hardware trigger edge
+at `time_ns`); exposure starts after the trigger latency plus Gaussian jitter; the frame is read out
+when the exposure ends and is delivered then. Every exposure increments the device frame id, so a
+dropped frame (sensor option `drop_rate`) leaves a gap in the ids as it does on real cameras. The
+device timestamp comes from the camera's own clock (offset `clock_offset_ns`, drift `drift_ppm`).
+
+For sync tests the camera records which trigger pulse each exposure answered:
+`truth_pulse[frame_id] = pulse_index` (hardware trigger) — the simulator's ground truth.
+"""
+from __future__ import annotations
+
+import heapq
+import itertools
+import queue
+import threading
+import time
+import zlib
+from typing import Callable, Optional
+
+import numpy as np
+
+from rig.cameras.base import Camera, DeviceInfo
+from rig.cameras.pixels import buffer_to_image, from_rgb, is_bayer
+from rig.config import CameraConfig
+from rig.errors import CameraDisconnected, CameraTimeout, ConfigError
+from simulator.options import with_defaults
+from sync.frames import Frame, monotonic_ns
+
+SCHEME = "sim"
+DEFAULT_NAMES = ("left", "sup1", "sup2", "sup3", "sup4", "right")
+
+# Simulated time zero: scene time t = (monotonic_ns - SIM_EPOCH_NS) / 1e9 while running live.
+SIM_EPOCH_NS = monotonic_ns()
+
+ImageSource = Callable[[float, float, np.random.Generator], np.ndarray]
+
+
+def discover() -> list[DeviceInfo]:
+    """The virtual cameras of the default simulated rig (always present)."""
+    return [
+        DeviceInfo(uri=f"sim://{n}", backend=SCHEME, model="virtual camera", serial=f"SIM-{n.upper()}", vendor="rig simulator")
+        for n in DEFAULT_NAMES
+    ]
+
+
+def open(uri: str, settings: CameraConfig, source: Optional[ImageSource] = None) -> "SimCamera":  # noqa: A001
+    return SimCamera(uri, settings, source=source)
+
+
+def synthetic_source(width: int, height: int, seed: int) -> ImageSource:
+    """A cheap moving test pattern (used where no scene renderer is wanted)."""
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    base = np.random.default_rng(seed).integers(0, 64, size=(height, width), dtype=np.uint8).astype(np.float32)
+
+    def render(t: float, exposure_s: float, rng: np.random.Generator) -> np.ndarray:
+        phase = (xx + 60.0 * t * 30.0) % 64.0
+        bars = np.where(phase < 32.0, 160.0, 60.0)
+        img = np.clip(bars + base + 20.0 * np.sin(yy / 23.0 + t), 0, 255).astype(np.uint8)
+        return np.repeat(img[:, :, None], 3, axis=2)
+
+    return render
+
+
+class SimCamera(Camera):
+    """A virtual camera; thread-safe between one consumer (get_frame) and trigger producers."""
+
+    QUEUE_FRAMES = 64  # host-side buffer pool; overflow loses frames as a real driver would
+
+    def __init__(self, uri: str, settings: CameraConfig, source: Optional[ImageSource] = None):
+        super().__init__(uri, settings)
+        self.device_name = uri.split("://", 1)[1].strip("/")
+        if not self.device_name:
+            raise ConfigError(f"{uri}: a sim URI names the virtual camera, e.g. sim://left")
+        self.opts = with_defaults(settings.sim, "camera")
+        seed = (int(self.opts["seed"]) * 1_000_003 + zlib.crc32(self.device_name.encode())) & 0x7FFFFFFF
+        self.rng = np.random.default_rng(seed)
+        self.source = source or synthetic_source(settings.width, settings.height, seed)
+        self.exposure_s = (settings.exposure_us or 5000.0) * 1e-6
+        self.truth_pulse: dict[int, int] = {}
+        self._requests: list[tuple[int, int, Optional[int]]] = []  # heap of (expose_ns, seq, pulse)
+        self._seq = itertools.count()
+        self._cv = threading.Condition()
+        self._out: queue.Queue = queue.Queue(maxsize=self.QUEUE_FRAMES)
+        self._running = False
+        self._closed = False
+        self._unplugged = False
+        self._thread: Optional[threading.Thread] = None
+        self._frame_counter = 0
+        self._start_ns = 0
+        self._last_exposure_end_ns = 0
+
+    # --- clocks ------------------------------------------------------------------------------------
+    def device_time_ns(self, host_ns: int) -> int:
+        """This camera's clock reading at host monotonic time `host_ns`."""
+        rel = host_ns - SIM_EPOCH_NS
+        return int(rel * (1.0 + self.opts["drift_ppm"] * 1e-6)) + int(self.opts["clock_offset_ns"])
+
+    # --- lifecycle -------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._check_alive()
+        if self._running:
+            return
+        self._running = True
+        self._start_ns = monotonic_ns()
+        self._thread = threading.Thread(target=self._run, name=f"sim-camera-{self.name}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        with self._cv:
+            self._running = False
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+
+    def close(self) -> None:
+        self.stop()
+        self._closed = True
+
+    def unplug(self) -> None:
+        """Make the camera vanish as if its cable were pulled: frames stop, get_frame reports it."""
+        self._unplugged = True
+        with self._cv:
+            self._cv.notify_all()
+
+    # --- triggers --------------------------------------------------------------------------------
+    def software_trigger(self) -> None:
+        self._check_alive()
+        if self.settings.trigger != "software":
+            raise ConfigError(f"{self.name}: software trigger fired but the camera is in '{self.settings.trigger}' mode")
+        self._request(monotonic_ns(), None)
+
+    def hardware_trigger(self, pulse_index: int, time_ns: int) -> None:
+        if self.settings.trigger != "hardware" or self._unplugged:
+            return  # a camera not in hardware-trigger mode ignores its input line
+        self._request(time_ns, pulse_index)
+
+    def _request(self, trigger_ns: int, pulse: Optional[int]) -> None:
+        latency_ns = self.opts["latency_us"] * 1e3
+        if self.opts["jitter_us"] > 0:
+            latency_ns += abs(self.rng.normal(0.0, self.opts["jitter_us"] * 1e3))
+        with self._cv:
+            heapq.heappush(self._requests, (int(trigger_ns + latency_ns), next(self._seq), pulse))
+            self._cv.notify_all()
+
+    # --- frames ----------------------------------------------------------------------------------
+    def _read_frame(self, timeout: float) -> Frame:
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                return self._out.get(timeout=min(0.05, max(0.0, deadline - time.monotonic())))
+            except queue.Empty:
+                if self._unplugged:
+                    raise CameraDisconnected(f"{self.name} ({self.uri}): camera disconnected") from None
+                if self._closed:
+                    raise CameraDisconnected(f"{self.name} ({self.uri}): camera is closed") from None
+                if time.monotonic() >= deadline:
+                    self.stats.timeouts += 1
+                    raise CameraTimeout(f"{self.name} ({self.uri}): no frame within {timeout:.3f} s") from None
+
+    def _check_alive(self) -> None:
+        if self._closed:
+            raise CameraDisconnected(f"{self.name} ({self.uri}): camera is closed")
+        if self._unplugged:
+            raise CameraDisconnected(f"{self.name} ({self.uri}): camera disconnected")
+
+    def _next_free_run(self, k: int) -> int:
+        return self._start_ns + int(round(k * 1e9 / self.settings.fps))
+
+    def _run(self) -> None:
+        free = self.settings.trigger == "free"
+        tick = itertools.count()
+        next_tick = self._next_free_run(next(tick)) if free else None
+        while True:
+            with self._cv:
+                while self._running and not self._unplugged:
+                    due = self._requests[0][0] if self._requests else None
+                    if free and (due is None or next_tick < due):
+                        due = next_tick
+                    if due is not None:
+                        wait_ns = due + int(self.exposure_s * 1e9) - monotonic_ns()  # readout at exposure end
+                        if wait_ns <= 0:
+                            break
+                        self._cv.wait(wait_ns / 1e9)
+                    else:
+                        self._cv.wait(0.1)
+                if not self._running or self._unplugged:
+                    return
+                if free and (not self._requests or next_tick <= self._requests[0][0]):
+                    expose_ns, pulse = next_tick, None
+                    next_tick = self._next_free_run(next(tick))
+                else:
+                    expose_ns, _, pulse = heapq.heappop(self._requests)
+            self._expose(expose_ns, pulse)
+
+    def _expose(self, expose_ns: int, pulse: Optional[int]) -> None:
+        if expose_ns < self._last_exposure_end_ns:
+            return  # the sensor is still busy with the previous exposure: this trigger is ignored
+        self._last_exposure_end_ns = expose_ns + int(self.exposure_s * 1e9)
+        self._frame_counter += 1
+        frame_id = self._frame_counter
+        if pulse is not None:
+            self.truth_pulse[frame_id] = pulse
+        if self.opts["drop_rate"] > 0 and self.rng.random() < self.opts["drop_rate"]:
+            return  # lost between sensor and host: the id gap tells the host
+        t = (expose_ns - SIM_EPOCH_NS) / 1e9
+        rgb = self.source(t, self.exposure_s, self.rng)
+        s = self.settings
+        raw = from_rgb(rgb, s.pixel_format)
+        image = buffer_to_image(raw.tobytes(), s.width, s.height, s.pixel_format) if is_bayer(s.pixel_format) else raw
+        frame = Frame(
+            image=image,
+            camera=self.name,
+            frame_id=frame_id,
+            device_ts_ns=self.device_time_ns(expose_ns),
+            host_ts_ns=monotonic_ns(),
+            pixel_format=s.pixel_format,
+            exposure_us=self.exposure_s * 1e6,
+        )
+        try:
+            self._out.put_nowait(frame)
+        except queue.Full:
+            pass  # host did not keep up: this frame is lost, the id gap shows it
