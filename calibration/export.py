@@ -1,0 +1,200 @@
+"""Exports of a rig calibration to the formats other tools read.
+
+Conventions of the formats differ in where a pixel's centre is: OpenCV, EasyMocap and aniposelib put
+pixel (0, 0)'s centre at (0, 0), as our file does; COLMAP and nerfstudio put it at (0.5, 0.5), so their
+principal points are shifted by +0.5 px. All translations stay in metres.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from calibration.camera import CalibrationError, CameraModel, RigCalibration
+from calibration.geometry import rotation_vector
+from calibration.report import rectification
+
+FORMATS = ("opencv", "easymocap", "anipose", "nerfstudio", "colmap")
+
+
+def stereo_pair(rig: RigCalibration) -> tuple[CameraModel, CameraModel]:
+    """The stereo pair: as the calibration names it, else cameras 'left' and 'right', else first and last."""
+    pair = rig.meta.get("stereo_pair") or {}
+    names = rig.names
+    left = pair.get("left") if pair.get("left") in names else ("left" if "left" in names else names[0])
+    right = pair.get("right") if pair.get("right") in names else ("right" if "right" in names else names[-1])
+    if left == right:
+        raise CalibrationError("the calibration has a single camera; the OpenCV stereo export needs two")
+    return rig[left], rig[right]
+
+
+def _fs_write(path: Path, entries: list[tuple[str, object]]) -> None:
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        for key, value in entries:
+            if isinstance(value, (list, tuple)) and value and isinstance(value[0], str):
+                fs.startWriteStruct(key, cv2.FileNode_SEQ)
+                for s in value:
+                    fs.write("", s)
+                fs.endWriteStruct()
+            else:
+                fs.write(key, np.asarray(value, dtype=np.float64))
+    finally:
+        fs.release()
+
+
+def rectification_maps(left: CameraModel, right: CameraModel, alpha: float | None = None) -> dict[str, np.ndarray]:
+    """Per-pixel lookup maps (for cv2.remap) that rectify the pair, plus R1 R2 P1 P2 Q."""
+    rect = rectification(left, right, alpha)
+    lx, ly = cv2.initUndistortRectifyMap(left.K, left.dist, rect["R1"], rect["P1"], (left.width, left.height), cv2.CV_32FC1)
+    rx, ry = cv2.initUndistortRectifyMap(right.K, right.dist, rect["R2"], rect["P2"], (left.width, left.height), cv2.CV_32FC1)
+    return {"left_map_x": lx, "left_map_y": ly, "right_map_x": rx, "right_map_y": ry, **{k: rect[k] for k in ("R1", "R2", "P1", "P2", "Q")}}
+
+
+def export_opencv(rig: RigCalibration, out: Path) -> list[Path]:
+    """intrinsics.yml (M1 D1 M2 D2), extrinsics.yml (R T R1 R2 P1 P2 Q; right-from-left) and the
+    rectification maps of the stereo pair (rectification_maps.npz)."""
+    left, right = stereo_pair(rig)
+    rect = rectification(left, right)
+    intr = out / "intrinsics.yml"
+    extr = out / "extrinsics.yml"
+    _fs_write(intr, [("M1", left.K), ("D1", left.dist.reshape(1, -1)), ("M2", right.K), ("D2", right.dist.reshape(1, -1))])
+    _fs_write(extr, [("R", rect["R"]), ("T", rect["T"].reshape(3, 1)), ("R1", rect["R1"]), ("R2", rect["R2"]),
+                     ("P1", rect["P1"]), ("P2", rect["P2"]), ("Q", rect["Q"])])
+    maps = out / "rectification_maps.npz"
+    np.savez_compressed(maps, **rectification_maps(left, right))
+    return [intr, extr, maps]
+
+
+def export_easymocap(rig: RigCalibration, out: Path) -> list[Path]:
+    """EasyMocap intri.yml (K_NAME, dist_NAME) and extri.yml (R_NAME Rodrigues, Rot_NAME, T_NAME)."""
+    intr = out / "intri.yml"
+    extr = out / "extri.yml"
+    names = rig.names
+    _fs_write(intr, [("names", names)] + [e for c in rig.cameras for e in (
+        (f"K_{c.name}", c.K), (f"dist_{c.name}", _dist5(c).reshape(1, 5)))])
+    _fs_write(extr, [("names", names)] + [e for c in rig.cameras for e in (
+        (f"R_{c.name}", rotation_vector(c.R).reshape(3, 1)), (f"Rot_{c.name}", c.R), (f"T_{c.name}", c.t.reshape(3, 1)))])
+    return [intr, extr]
+
+
+def _dist5(cam: CameraModel) -> np.ndarray:
+    d = np.zeros(5)
+    d[: min(5, cam.dist.size)] = cam.dist[:5]
+    return d
+
+
+def _toml_list(values) -> str:
+    return "[" + ", ".join(_toml_list(v) if isinstance(v, (list, tuple, np.ndarray)) else repr(float(v)) for v in values) + "]"
+
+
+def export_anipose(rig: RigCalibration, out: Path) -> list[Path]:
+    """aniposelib CameraGroup TOML: [cam_N] name size matrix distortions rotation (Rodrigues) translation."""
+    path = out / "calibration.toml"
+    lines = []
+    for i, c in enumerate(rig.cameras):
+        lines += [
+            f"[cam_{i}]",
+            f'name = "{c.name}"',
+            f"size = [{c.width}, {c.height}]",
+            f"matrix = {_toml_list(c.K)}",
+            f"distortions = {_toml_list(_dist5(c))}",
+            f"rotation = {_toml_list(rotation_vector(c.R))}",
+            f"translation = {_toml_list(c.t)}",
+            "",
+        ]
+    rms = rig.meta.get("rms_px") or {}
+    err = float(np.mean(list(rms.values()))) if rms else 0.0
+    lines += ["[metadata]", "adjusted = true", f"error = {err!r}", ""]
+    path.write_text("\n".join(lines))
+    return [path]
+
+
+def export_nerfstudio(rig: RigCalibration, out: Path) -> list[Path]:
+    """nerfstudio transforms.json, one frame per camera (images/NAME.png), per-frame OPENCV intrinsics.
+
+    transform_matrix is camera-to-world in nerfstudio's (OpenGL) camera axes: x right, y up, z backwards.
+    """
+    path = out / "transforms.json"
+    frames = []
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    for c in rig.cameras:
+        c2w = np.eye(4)
+        c2w[:3, :3] = c.R.T
+        c2w[:3, 3] = c.center
+        d = _dist5(c)
+        frames.append({
+            "file_path": f"images/{c.name}.png",
+            "transform_matrix": (c2w @ flip).tolist(),
+            "camera_model": "OPENCV",
+            "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx + 0.5, "cy": c.cy + 0.5, "w": c.width, "h": c.height,
+            "k1": d[0], "k2": d[1], "p1": d[2], "p2": d[3], "k3": d[4],
+        })
+    path.write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=2) + "\n")
+    return [path]
+
+
+def _quaternion(R: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) of a rotation matrix, w >= 0."""
+    m = R
+    tr = np.trace(m)
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = np.array([(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s])
+    elif m[1, 1] > m[2, 2]:
+        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = np.array([(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s])
+    else:
+        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = np.array([(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s])
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def export_colmap(rig: RigCalibration, out: Path) -> list[Path]:
+    """COLMAP text model: cameras.txt (FULL_OPENCV), images.txt (world-to-camera quaternion, NAME.png),
+    and an empty points3D.txt so COLMAP reads the folder as a model."""
+    cams = out / "cameras.txt"
+    imgs = out / "images.txt"
+    pts = out / "points3D.txt"
+    clines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+              f"# Number of cameras: {len(rig.cameras)}"]
+    ilines = ["# Image list with two lines of data per image:", "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+              "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(rig.cameras)}, mean observations per image: 0"]
+    for i, c in enumerate(rig.cameras, start=1):
+        d = _dist5(c)
+        params = [c.fx, c.fy, c.cx + 0.5, c.cy + 0.5, d[0], d[1], d[2], d[3], d[4], 0.0, 0.0, 0.0]
+        clines.append(f"{i} FULL_OPENCV {c.width} {c.height} " + " ".join(repr(float(p)) for p in params))
+        q = _quaternion(c.R)
+        ilines.append(f"{i} " + " ".join(repr(float(x)) for x in (*q, *c.t)) + f" {i} {c.name}.png")
+        ilines.append("")
+    cams.write_text("\n".join(clines) + "\n")
+    imgs.write_text("\n".join(ilines) + "\n")
+    pts.write_text("# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n# Number of points: 0\n")
+    return [cams, imgs, pts]
+
+
+EXPORTERS: dict[str, Callable[[RigCalibration, Path], list[Path]]] = {
+    "opencv": export_opencv,
+    "easymocap": export_easymocap,
+    "anipose": export_anipose,
+    "nerfstudio": export_nerfstudio,
+    "colmap": export_colmap,
+}
+
+
+def export(rig: RigCalibration, fmt: str, out: str | Path) -> list[Path]:
+    """Write `rig` in format `fmt` into folder `out`; returns the files written."""
+    if fmt not in EXPORTERS:
+        raise CalibrationError(f"unknown export format {fmt!r} (allowed: {', '.join(FORMATS)})")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise CalibrationError(f"{out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    return EXPORTERS[fmt](rig, out)

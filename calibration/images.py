@@ -1,0 +1,134 @@
+"""Calibration image sets on disk and their detections.
+
+Two layouts are read:
+  DIR/CAMNAME/*.png|jpg      one folder per camera; files with the same stem are one synchronised view
+  DIR/leftNN.jpg, rightNN.jpg  a stereo pair in one folder; NN (any suffix) names the view
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from calibration.boards import BoardSpec
+from calibration.camera import CalibrationError
+from calibration.detect import Corners, make_detector
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+_PAIR_RE = re.compile(r"^(left|right)[_-]?(.+)$", re.IGNORECASE)
+
+
+@dataclass
+class ImageSet:
+    """Image paths per camera and view: paths[camera][view] -> Path."""
+
+    root: Path
+    paths: dict[str, dict[str, Path]]
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self.paths)
+
+    @property
+    def views(self) -> list[str]:
+        return sorted({v for per in self.paths.values() for v in per})
+
+
+@dataclass
+class DetectionSet:
+    """Everything the solver needs: image size per camera and the corners of every (camera, view)."""
+
+    image_size: dict[str, tuple[int, int]]  # camera -> (width, height)
+    corners: dict[str, dict[str, Corners]]  # camera -> view -> corners (views where the board was found)
+    images_seen: dict[str, int] = field(default_factory=dict)  # camera -> number of images looked at
+    sources: dict[str, dict[str, str]] = field(default_factory=dict)  # camera -> view -> file
+
+    @property
+    def cameras(self) -> list[str]:
+        return list(self.image_size)
+
+    @property
+    def views(self) -> list[str]:
+        return sorted({v for per in self.corners.values() for v in per})
+
+
+def _is_image(p: Path) -> bool:
+    return p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+
+
+def find_images(root: str | Path) -> ImageSet:
+    """The image set under `root` in either layout; CalibrationError when it holds none."""
+    root = Path(root)
+    if not root.is_dir():
+        raise CalibrationError(f"{root}: no such image folder")
+    paths: dict[str, dict[str, Path]] = {}
+    subdirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    for d in subdirs:
+        files = {f.stem: f for f in sorted(d.iterdir()) if _is_image(f)}
+        if files:
+            paths[d.name] = files
+    if not paths:
+        for f in sorted(root.iterdir()):
+            if not _is_image(f):
+                continue
+            m = _PAIR_RE.match(f.stem)
+            if m:
+                paths.setdefault(m.group(1).lower(), {})[m.group(2)] = f
+    if not paths:
+        raise CalibrationError(
+            f"{root}: no calibration images (expected {root}/CAMNAME/*.png|jpg, or leftNN/rightNN images in {root})"
+        )
+    return ImageSet(root, paths)
+
+
+def read_gray(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise CalibrationError(f"{path}: cannot read this image (corrupt or not an image)")
+    return img
+
+
+def detect_images(
+    images: ImageSet,
+    board: BoardSpec,
+    progress: Callable[[int, int], None] | None = None,
+) -> DetectionSet:
+    """Detect the board in every image. Every image of one camera must have the same size."""
+    detector = make_detector(board)
+    sizes: dict[str, tuple[int, int]] = {}
+    first_file: dict[str, Path] = {}
+    corners: dict[str, dict[str, Corners]] = {}
+    sources: dict[str, dict[str, str]] = {}
+    seen: dict[str, int] = {}
+    total = sum(len(v) for v in images.paths.values())
+    done = 0
+    for cam, per_view in images.paths.items():
+        corners[cam] = {}
+        sources[cam] = {}
+        seen[cam] = 0
+        for view, path in sorted(per_view.items()):
+            img = read_gray(path)
+            size = (img.shape[1], img.shape[0])
+            if cam not in sizes:
+                sizes[cam] = size
+                first_file[cam] = path
+            elif size != sizes[cam]:
+                raise CalibrationError(
+                    f"{path}: image is {size[0]}x{size[1]} but {first_file[cam].name} of camera '{cam}' is "
+                    f"{sizes[cam][0]}x{sizes[cam][1]}; all images of one camera must have the same size"
+                )
+            seen[cam] += 1
+            found = detector(img)
+            if found is not None:
+                corners[cam][view] = found
+                sources[cam][view] = str(path)
+            done += 1
+            if progress:
+                progress(done, total)
+    if not any(corners.values()):
+        raise CalibrationError(f"{images.root}: the board was not found in any of the {total} images (check the board file)")
+    return DetectionSet(sizes, corners, seen, sources)

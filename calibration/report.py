@@ -1,0 +1,304 @@
+"""Calibration quality report: reprojection error per camera and per view, board coverage of each image,
+the stereo pair's epipolar error after rectification, and warnings when the result should not be trusted.
+
+`build_report` measures a fresh calibration (it needs the corners); the report is stored in the
+calibration file's metadata, and `format_report` prints it again from the file alone.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+from calibration.camera import CameraModel, RigCalibration
+
+if TYPE_CHECKING:
+    from calibration.solve import CalibrationResult
+
+COVERAGE_GRID = (8, 6)  # cells across, down
+MIN_GOOD_VIEWS = 10
+MIN_COVERAGE = 0.6
+MAX_GOOD_RMS_PX = 1.0
+MAX_GOOD_EPIPOLAR_PX = 0.5
+MIN_STEREO_VIEWS = 5
+_REGIONS = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
+
+
+def coverage(size: tuple[int, int], views: list[np.ndarray], grid: tuple[int, int] = COVERAGE_GRID) -> dict[str, Any]:
+    """Which parts of the image the board covered in at least one view (each view's corner hull).
+
+    A grid cell counts as seen when half of it was inside some view's board outline. `never_seen` names
+    the ninths of the image (top-left ... bottom-right) that less than a quarter of was ever covered.
+    """
+    w, h = size
+    scale = 8
+    mw, mh = max(1, w // scale), max(1, h // scale)
+    mask = np.zeros((mh, mw), np.uint8)
+    for pts in views:
+        if len(pts) < 3:
+            continue
+        hull = cv2.convexHull((np.asarray(pts, dtype=np.float64) / scale).astype(np.float32))
+        cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
+    gx, gy = grid
+    cells = []
+    seen = 0
+    for j in range(gy):
+        row = ""
+        for i in range(gx):
+            block = mask[j * mh // gy : (j + 1) * mh // gy, i * mw // gx : (i + 1) * mw // gx]
+            hit = block.size > 0 and block.mean() >= 0.5
+            seen += hit
+            row += "#" if hit else "."
+        cells.append(row)
+    never = []
+    for j in range(3):
+        for i in range(3):
+            block = mask[j * mh // 3 : (j + 1) * mh // 3, i * mw // 3 : (i + 1) * mw // 3]
+            if block.size == 0 or block.mean() < 0.25:
+                never.append(_REGIONS[j][i])
+    return {"fraction": round(seen / (gx * gy), 3), "grid": cells, "never_seen": never}
+
+
+def rectification(left: CameraModel, right: CameraModel, alpha: float | None = None) -> dict[str, np.ndarray]:
+    """cv2.stereoRectify for the pair: R1 R2 P1 P2 Q, plus R T (right-from-left).
+
+    A near-parallel pair (optical axes within 15 degrees) gets OpenCV's usual rectification: equal
+    principal points (zero disparity at infinity) and alpha = 0 (only valid pixels). A strongly verged
+    pair cannot share a principal point without pushing the scene out of both images, and OpenCV's
+    alpha scaling degenerates for it; it keeps separate principal points and the cameras' focal length
+    (alpha = -1).
+    """
+    R = right.R @ left.R.T
+    T = right.t - R @ left.t
+    verge = np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0)))
+    parallel = verge < 15.0
+    flags = cv2.CALIB_ZERO_DISPARITY if parallel else 0
+    if alpha is None:
+        alpha = 0.0 if parallel else -1.0
+    R1, R2, P1, P2, Q, roi1, roi2 = cv2.stereoRectify(
+        left.K, left.dist, right.K, right.dist, (left.width, left.height), R, T.reshape(3, 1), flags=flags, alpha=alpha
+    )
+    return {"R": R, "T": T, "R1": R1, "R2": R2, "P1": P1, "P2": P2, "Q": Q, "roi1": np.array(roi1), "roi2": np.array(roi2),
+            "verge_deg": verge}
+
+
+def epipolar_error(left: CameraModel, right: CameraModel, pairs: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any] | None:
+    """Vertical disparity of matched corners after rectification (0 for a perfect calibration).
+
+    Measured in pixels of the left camera's focal length: the rectified images' own focal length
+    depends on how far they are zoomed (strongly verged pairs zoom a lot) and would inflate the figure.
+    """
+    if not pairs:
+        return None
+    rect = rectification(left, right)
+    f = left.fy
+    dy = []
+    for pl, pr in pairs:
+        yl = _rectified_y(left, rect["R1"], pl)
+        yr = _rectified_y(right, rect["R2"], pr)
+        dy.append(f * (yl - yr))
+    d = np.concatenate(dy)
+    return {"rms_px": float(np.sqrt(np.mean(d * d))), "max_px": float(np.abs(d).max()), "points": int(d.size), "views": len(pairs)}
+
+
+def _rectified_y(cam: CameraModel, R_rect: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Normalised y of pixels after undistortion and the rectifying rotation."""
+    xy = cam.undistort_normalized(uv, iterations=50)
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R_rect.T
+    return rays[:, 1] / rays[:, 2]
+
+
+def _r(x: float | None, n: int = 4):
+    return None if x is None or not np.isfinite(x) else round(float(x), n)
+
+
+def build_report(result: "CalibrationResult") -> dict[str, Any]:
+    obs = result.observations
+    rig = result.rig
+    names = obs.cameras
+    sq = np.sum(obs.residuals ** 2, axis=1)
+    V = len(obs.views)
+    rms_px: dict[str, float] = {}
+    views_used: dict[str, int] = {}
+    per_camera: dict[str, Any] = {}
+    per_view: dict[str, dict[str, float]] = {}
+    warnings: list[str] = []
+
+    key = obs.cam_idx * V + obs.view_idx
+    uniq, inv = np.unique(key, return_inverse=True)
+    obs_rms = np.sqrt(np.bincount(inv, weights=sq) / np.bincount(inv))
+    for k, e in zip(uniq, obs_rms):
+        per_view.setdefault(obs.views[k % V], {})[names[k // V]] = _r(e)
+
+    rejected_by_cam: dict[str, int] = {}
+    for rej in result.rejected:
+        rejected_by_cam[rej.camera] = rejected_by_cam.get(rej.camera, 0) + 1
+
+    for ci, name in enumerate(names):
+        m = obs.cam_idx == ci
+        cam = rig[name]
+        rms_px[name] = _r(np.sqrt(np.mean(sq[m])))
+        used_views = sorted(set(obs.view_idx[m].tolist()))
+        views_used[name] = len(used_views)
+        hulls = [obs.uv[m & (obs.view_idx == v)] for v in used_views]
+        cov = coverage(result.image_size[name], hulls)
+        std = result.solution.intrinsics_std[ci]
+        per_camera[name] = {
+            "width": cam.width,
+            "height": cam.height,
+            "fx": _r(cam.fx, 3),
+            "fy": _r(cam.fy, 3),
+            "cx": _r(cam.cx, 3),
+            "cy": _r(cam.cy, 3),
+            "dist": [round(float(x), 6) for x in cam.dist],
+            "std": {"fx": _r(std[0]), "fy": _r(std[1]), "cx": _r(std[2]), "cy": _r(std[3])},
+            "center_m": [round(float(x), 5) for x in cam.center],
+            "rms_px": rms_px[name],
+            "rms_single_camera_px": _r(result.intrinsics[name].rms),
+            "views_used": views_used[name],
+            "views_found": len(result.intrinsics[name].view_rms) + sum(
+                1 for r in result.rejected if r.camera == name and r.stage == "intrinsics"
+            ),
+            "images": result.images_seen.get(name),
+            "rejected": rejected_by_cam.get(name, 0),
+            "coverage": cov,
+        }
+        if views_used[name] < MIN_GOOD_VIEWS:
+            warnings.append(f"camera '{name}': only {views_used[name]} views used; {MIN_GOOD_VIEWS} or more are needed to trust its intrinsics")
+        if cov["fraction"] < MIN_COVERAGE:
+            where = f" (never seen: {', '.join(cov['never_seen'])})" if cov["never_seen"] else ""
+            warnings.append(
+                f"camera '{name}': the board covered only {cov['fraction'] * 100:.0f}% of the image{where}; "
+                "distortion there is extrapolated, show the board in those regions"
+            )
+        if rms_px[name] is not None and rms_px[name] > MAX_GOOD_RMS_PX:
+            warnings.append(f"camera '{name}': reprojection RMS {rms_px[name]:.2f} px is high (above {MAX_GOOD_RMS_PX} px)")
+        if result.intrinsics[name].fix_k3:
+            warnings.append(f"camera '{name}': too few views to estimate k3; it was held at 0")
+
+    shared_views = [v for v, cams in per_view.items() if len(cams) >= 2]
+    report: dict[str, Any] = {
+        "cameras": per_camera,
+        "rms_px": rms_px,
+        "views_used": views_used,
+        "views_total": V,
+        "views_multi_camera": len(shared_views),
+        "per_view": {v: per_view[v] for v in obs.views if v in per_view},
+        "rejected": [r.to_dict() for r in result.rejected],
+        "converged": bool(result.solution.converged),
+        "iterations": int(result.solution.iterations),
+        "stereo_rms_px": None,
+        "baseline_m": None,
+        "stereo": None,
+    }
+    if not result.solution.converged:
+        warnings.append("the joint adjustment did not converge within its iteration limit")
+    if result.right is not None:
+        li, ri = names.index(result.left), names.index(result.right)
+        left, right = rig[result.left], rig[result.right]
+        common = sorted(set(obs.view_idx[obs.cam_idx == li].tolist()) & set(obs.view_idx[obs.cam_idx == ri].tolist()))
+        mask = np.isin(obs.view_idx, common) & ((obs.cam_idx == li) | (obs.cam_idx == ri))
+        stereo_rms = float(np.sqrt(np.mean(sq[mask]))) if mask.any() else None
+        pairs = []
+        for v in common:
+            ml = (obs.cam_idx == li) & (obs.view_idx == v)
+            mr = (obs.cam_idx == ri) & (obs.view_idx == v)
+            _, a, b = np.intersect1d(obs.ids[ml], obs.ids[mr], return_indices=True)
+            if len(a):
+                pairs.append((obs.uv[ml][a], obs.uv[mr][b]))
+        epi = epipolar_error(left, right, pairs)
+        baseline = float(np.linalg.norm(right.center - left.center))
+        report["stereo_rms_px"] = _r(stereo_rms)
+        report["baseline_m"] = _r(baseline, 6)
+        report["stereo"] = {
+            "left": result.left,
+            "right": result.right,
+            "common_views": len(common),
+            "rms_px": _r(stereo_rms),
+            "rms_fixed_intrinsics_px": _r(result.stereo_init["rms_px"]) if result.stereo_init else None,
+            "baseline_m": _r(baseline, 6),
+            "epipolar_rms_px": _r(epi["rms_px"]) if epi else None,
+            "epipolar_max_px": _r(epi["max_px"]) if epi else None,
+        }
+        if len(common) < MIN_STEREO_VIEWS:
+            warnings.append(
+                f"stereo pair: '{result.left}' and '{result.right}' saw the board together in only {len(common)} views; "
+                f"their relative pose rests on the other cameras ({MIN_STEREO_VIEWS} or more shared views are advised)"
+            )
+        if epi and epi["rms_px"] > MAX_GOOD_EPIPOLAR_PX:
+            warnings.append(f"stereo pair: epipolar error after rectification is {epi['rms_px']:.2f} px RMS (above {MAX_GOOD_EPIPOLAR_PX} px)")
+    report["warnings"] = warnings
+    return report
+
+
+def format_report(calib: RigCalibration) -> str:
+    """Human-readable report of a calibration file (measurements when the file carries them)."""
+    meta = calib.meta
+    rep = meta.get("report")
+    lines = []
+    if meta.get("date"):
+        lines.append(f"calibrated {meta['date']}")
+    if meta.get("board"):
+        b = meta["board"]
+        desc = ", ".join(f"{k}={v}" for k, v in b.items() if k != "type")
+        lines.append(f"board: {b.get('type')} ({desc})")
+    lines.append("")
+    lines.append(f"{'camera':<10} {'size':>10} {'fx':>9} {'fy':>9} {'cx':>8} {'cy':>8} {'rms px':>7} {'views':>5} {'cover':>6}  centre (m)")
+    for cam in calib.cameras:
+        c = (rep or {}).get("cameras", {}).get(cam.name, {})
+        rms = c.get("rms_px")
+        cov = c.get("coverage", {}).get("fraction")
+        lines.append(
+            f"{cam.name:<10} {f'{cam.width}x{cam.height}':>10} {cam.fx:9.2f} {cam.fy:9.2f} {cam.cx:8.2f} {cam.cy:8.2f} "
+            f"{'-' if rms is None else f'{rms:.3f}':>7} {c.get('views_used', '-'):>5} {'-' if cov is None else f'{cov * 100:.0f}%':>6}  "
+            + " ".join(f"{x:+.4f}" for x in cam.center)
+        )
+    if rep is None:
+        if len(calib.cameras) >= 2:
+            a, b = calib.cameras[0], calib.cameras[-1]
+            lines.append("")
+            lines.append(f"baseline {a.name}-{b.name}: {np.linalg.norm(b.center - a.center) * 1000:.2f} mm")
+        lines.append("(this file carries no measurements: reprojection errors and coverage come from `rig calibrate run`)")
+        return "\n".join(lines)
+    st = rep.get("stereo")
+    if st:
+        lines.append("")
+        lines.append(
+            f"stereo pair {st['left']}-{st['right']}: baseline {st['baseline_m'] * 1000:.2f} mm, RMS {_fmt(st['rms_px'])} px "
+            f"over {st['common_views']} shared views, epipolar error after rectification {_fmt(st['epipolar_rms_px'])} px RMS "
+            f"(max {_fmt(st['epipolar_max_px'])} px)"
+        )
+    lines.append(f"views: {rep['views_total']} ({rep['views_multi_camera']} seen by two or more cameras)")
+    lines.append("")
+    lines.append("board coverage (# seen, . never):")
+    cams = list(rep["cameras"].items())
+    for start in range(0, len(cams), 4):
+        chunk = cams[start : start + 4]
+        width = max(len(c["coverage"]["grid"][0]) for _, c in chunk) + 4
+        lines.append("  " + "".join(f"{n[: width - 2]:<{width}}" for n, _ in chunk))
+        for row in range(len(chunk[0][1]["coverage"]["grid"])):
+            lines.append("  " + "".join(f"{c['coverage']['grid'][row]:<{width}}" for _, c in chunk))
+    worst = sorted(
+        ((max(v.values()), view, v) for view, v in rep.get("per_view", {}).items() if v), key=lambda x: -x[0]
+    )[:5]
+    if worst:
+        lines.append("")
+        lines.append("worst views (RMS px per camera):")
+        for _, view, v in worst:
+            lines.append(f"  {view}: " + ", ".join(f"{c} {e:.3f}" for c, e in v.items()))
+    if rep.get("rejected"):
+        lines.append("")
+        lines.append(f"rejected ({len(rep['rejected'])}):")
+        for r in rep["rejected"]:
+            lines.append(f"  view {r['view']}, camera {r['camera']}: {r['reason']}")
+    if rep.get("warnings"):
+        lines.append("")
+        lines.append("warnings:")
+        for w in rep["warnings"]:
+            lines.append(f"  - {w}")
+    return "\n".join(lines)
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.3f}"

@@ -1,0 +1,348 @@
+"""Calibrating a rig from board detections.
+
+1. intrinsics of every camera alone (`cv2.calibrateCamera`), views that do not fit rejected;
+2. the stereo pair's extrinsics (`cv2.stereoCalibrate`, intrinsics held);
+3. every camera in the left camera's frame, started from the relative poses the board views imply and
+   refined jointly with the intrinsics and every board pose by bundle adjustment over all views
+   (a board seen by two or more cameras ties them together); observations that do not fit are rejected
+   with the reason and the adjustment is run again.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import re
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from calibration import bundle
+from calibration.boards import BoardSpec
+from calibration.camera import CalibrationError, CameraModel, RigCalibration
+from calibration.detect import Corners
+from calibration.geometry import compose, invert_pose, robust_mean_pose, rodrigues, rotation_vector
+from calibration.images import DetectionSet
+
+MIN_VIEWS_PER_CAMERA = 4
+# Below this many views k3 is not observable enough to estimate; it stays 0.
+MIN_VIEWS_FOR_K3 = 10
+
+
+@dataclass
+class Options:
+    left: str | None = None  # camera at the origin; default "left", else the first camera
+    right: str | None = None  # the other camera of the stereo pair; default "right", else the second
+    outlier_px: float = 1.0  # an observation is an outlier above max(outlier_px, outlier_factor * median RMS)
+    outlier_factor: float = 5.0
+    fix_k3: bool | None = None  # None: fix k3 for cameras with fewer than MIN_VIEWS_FOR_K3 views
+    max_rounds: int = 4  # bundle adjustment + rejection rounds
+
+
+@dataclass
+class Rejection:
+    camera: str
+    view: str
+    stage: str  # "intrinsics" | "joint"
+    rms_px: float
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"camera": self.camera, "view": self.view, "stage": self.stage, "rms_px": round(self.rms_px, 4), "reason": self.reason}
+
+
+@dataclass
+class CameraIntrinsics:
+    K: np.ndarray
+    dist: np.ndarray
+    rms: float
+    view_rms: dict[str, float]
+    poses: dict[str, tuple[np.ndarray, np.ndarray]]  # view -> board-to-camera (R, t)
+    fix_k3: bool
+
+
+@dataclass
+class Observations:
+    """The corners used in the final adjustment and their residuals, for the report."""
+
+    cameras: list[str]
+    views: list[str]
+    cam_idx: np.ndarray
+    view_idx: np.ndarray
+    ids: np.ndarray
+    uv: np.ndarray
+    residuals: np.ndarray
+
+
+@dataclass
+class CalibrationResult:
+    rig: RigCalibration
+    left: str
+    right: str | None
+    observations: Observations
+    intrinsics: dict[str, CameraIntrinsics]
+    rejected: list[Rejection]
+    stereo_init: dict[str, Any] | None
+    solution: bundle.Solution
+    image_size: dict[str, tuple[int, int]]
+    images_seen: dict[str, int] = field(default_factory=dict)
+
+
+def natural_key(s: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
+
+
+def camera_order(names: list[str], left: str | None, right: str | None) -> tuple[list[str], str, str | None]:
+    """Left first, right last, the others between in natural order."""
+    names = sorted(names, key=natural_key)
+    if left is None:
+        left = "left" if "left" in names else names[0]
+    if left not in names:
+        raise CalibrationError(f"no images of camera '{left}' (cameras: {', '.join(names)})")
+    rest = [n for n in names if n != left]
+    if right is None and rest:
+        right = "right" if "right" in rest else rest[-1]
+    if right is not None and right not in rest:
+        raise CalibrationError(f"no images of camera '{right}' (cameras: {', '.join(names)})")
+    middle = [n for n in rest if n != right]
+    return [left] + middle + ([right] if right else []), left, right
+
+
+def _view_rms(uv_hat: np.ndarray, uv: np.ndarray) -> float:
+    d = uv_hat.reshape(-1, 2) - uv.reshape(-1, 2)
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def _threshold(values: list[float], opts: Options) -> float:
+    return max(opts.outlier_px, opts.outlier_factor * float(np.median(values)))
+
+
+def calibrate_intrinsics(
+    camera: str,
+    size: tuple[int, int],
+    views: dict[str, Corners],
+    object_points: np.ndarray,
+    opts: Options,
+    rejected: list[Rejection],
+) -> CameraIntrinsics:
+    """One camera's K and distortion from its board views; views that do not fit are rejected and logged."""
+    keep = dict(sorted(views.items(), key=lambda kv: natural_key(kv[0])))
+    if len(keep) < MIN_VIEWS_PER_CAMERA:
+        raise CalibrationError(
+            f"camera '{camera}': the board was found in only {len(keep)} image(s); at least {MIN_VIEWS_PER_CAMERA} are needed"
+        )
+    fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else len(keep) < MIN_VIEWS_FOR_K3
+    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    for _ in range(opts.max_rounds):
+        names = list(keep)
+        obj = [object_points[keep[v].ids].astype(np.float32) for v in names]
+        img = [keep[v].points.astype(np.float32).reshape(-1, 1, 2) for v in names]
+        try:
+            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags, criteria=crit)
+        except cv2.error as exc:
+            raise CalibrationError(f"camera '{camera}': OpenCV could not calibrate it from these views ({exc.err})") from None
+        view_rms = {}
+        for v, o, i, rv, tv in zip(names, obj, img, rvecs, tvecs):
+            proj, _ = cv2.projectPoints(o, rv, tv, K, dist)
+            view_rms[v] = _view_rms(proj, i)
+        limit = _threshold(list(view_rms.values()), opts)
+        bad = [v for v, e in view_rms.items() if e > limit]
+        if not bad or len(keep) - len(bad) < MIN_VIEWS_PER_CAMERA:
+            break
+        med = float(np.median(list(view_rms.values())))
+        for v in bad:
+            rejected.append(
+                Rejection(camera, v, "intrinsics", view_rms[v],
+                          f"reprojection RMS {view_rms[v]:.2f} px in the single-camera fit, above the limit {limit:.2f} px (median {med:.2f} px)")
+            )
+            del keep[v]
+    poses = {v: (cv2.Rodrigues(rv)[0], tv.reshape(3)) for v, rv, tv in zip(names, rvecs, tvecs)}
+    return CameraIntrinsics(K, dist.reshape(-1)[:5], float(rms), view_rms, poses, fix_k3)
+
+
+def _common(a: Corners, b: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ids, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    return ids, a.points[ia], b.points[ib]
+
+
+def stereo_pair(
+    left: str, right: str, corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
+    object_points: np.ndarray, size: tuple[int, int],
+) -> dict[str, Any] | None:
+    """cv2.stereoCalibrate with both intrinsics held: right-from-left (R, T) and its RMS."""
+    views = [v for v in intr[left].poses if v in intr[right].poses]
+    obj, pl, pr = [], [], []
+    for v in views:
+        ids, a, b = _common(corners[left][v], corners[right][v])
+        if len(ids) < 6:
+            continue
+        obj.append(object_points[ids].astype(np.float32))
+        pl.append(a.astype(np.float32).reshape(-1, 1, 2))
+        pr.append(b.astype(np.float32).reshape(-1, 1, 2))
+    if not obj:
+        return None
+    L, Rr = intr[left], intr[right]
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    out = cv2.stereoCalibrate(obj, pl, pr, L.K, L.dist, Rr.K, Rr.dist, size, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+    rms, R, T = out[0], out[5], out[6]
+    return {"rms_px": float(rms), "R": np.asarray(R), "T": np.asarray(T).reshape(3), "views": len(obj)}
+
+
+def _initial_camera_poses(order: list[str], intr: dict[str, CameraIntrinsics], stereo: dict | None, right: str | None):
+    """World(=left camera)-to-camera poses from the relative poses implied by shared board views.
+
+    A spanning tree grows from the left camera, always adding the camera that shares the most views with
+    one already placed; each edge is the robust mean of the per-view relative poses.
+    """
+    placed: dict[str, tuple[np.ndarray, np.ndarray]] = {order[0]: (np.eye(3), np.zeros(3))}
+    if stereo is not None and right is not None:
+        placed[right] = (stereo["R"], stereo["T"])
+    while len(placed) < len(order):
+        best = None
+        for a in placed:
+            for b in order:
+                if b in placed:
+                    continue
+                shared = [v for v in intr[a].poses if v in intr[b].poses]
+                if shared and (best is None or len(shared) > len(best[2])):
+                    best = (a, b, shared)
+        if best is None:
+            missing = [n for n in order if n not in placed]
+            raise CalibrationError(
+                f"camera(s) {', '.join(repr(m) for m in missing)} never see the board at the same time as the others; "
+                "capture views where the board is visible to them and a calibrated neighbour together"
+            )
+        a, b, shared = best
+        Rs, ts = [], []
+        for v in shared:
+            Ra, ta = intr[a].poses[v]
+            Rb, tb = intr[b].poses[v]
+            R_ab, t_ab = compose(Rb, tb, *invert_pose(Ra, ta))  # camera a -> camera b
+            Rs.append(R_ab)
+            ts.append(t_ab)
+        R_ab, t_ab, _ = robust_mean_pose(np.array(Rs), np.array(ts))
+        placed[b] = compose(R_ab, t_ab, *placed[a])
+    return placed
+
+
+def calibrate_rig(
+    detections: DetectionSet,
+    board: BoardSpec,
+    opts: Options | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> CalibrationResult:
+    opts = opts or Options()
+    say = progress or (lambda s: None)
+    cams_with_views = [c for c in detections.cameras if detections.corners.get(c)]
+    for c in detections.cameras:
+        if not detections.corners.get(c):
+            raise CalibrationError(f"camera '{c}': the board was not found in any of its {detections.images_seen.get(c, 0)} images")
+    order, left, right = camera_order(cams_with_views, opts.left, opts.right)
+    _, object_points = board.object_points()
+    rejected: list[Rejection] = []
+
+    intr: dict[str, CameraIntrinsics] = {}
+    for c in order:
+        say(f"intrinsics of {c}")
+        intr[c] = calibrate_intrinsics(c, detections.image_size[c], detections.corners[c], object_points, opts, rejected)
+
+    stereo = None
+    if right is not None:
+        say(f"stereo pair {left}-{right}")
+        stereo = stereo_pair(left, right, detections.corners, intr, object_points, detections.image_size[left])
+
+    say("initial rig geometry")
+    poses = _initial_camera_poses(order, intr, stereo, right)
+
+    # Observations of the joint adjustment: every (camera, view) that survived the single-camera fit.
+    views = sorted({v for c in order for v in intr[c].poses}, key=natural_key)
+    vindex = {v: i for i, v in enumerate(views)}
+    obs_cam, obs_view, obs_ids, obs_uv = [], [], [], []
+    for ci, c in enumerate(order):
+        for v in intr[c].poses:
+            cr = detections.corners[c][v]
+            obs_cam.append(np.full(len(cr), ci))
+            obs_view.append(np.full(len(cr), vindex[v]))
+            obs_ids.append(cr.ids)
+            obs_uv.append(cr.points)
+    cam_idx = np.concatenate(obs_cam)
+    view_idx = np.concatenate(obs_view)
+    ids = np.concatenate(obs_ids)
+    uv = np.concatenate(obs_uv)
+
+    # Board pose per view in the world: from the camera that sees the most of it.
+    view_pose = np.zeros((len(views), 6))
+    for v, vi in vindex.items():
+        best = max((c for c in order if v in intr[c].poses), key=lambda c: len(detections.corners[c][v]))
+        Rcw, tcw = poses[best]
+        Rcb, tcb = intr[best].poses[v]
+        Rwb, twb = compose(*invert_pose(Rcw, tcw), Rcb, tcb)
+        view_pose[vi, :3] = rotation_vector(Rwb)
+        view_pose[vi, 3:] = twb
+    intr0 = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d] for K, d in ((intr[c].K, intr[c].dist) for c in order)])
+    cams0 = np.array([np.concatenate([rotation_vector(poses[c][0]), poses[c][1]]) for c in order])
+    fixed_intr = np.zeros((len(order), bundle.N_INTR), dtype=bool)
+    for ci, c in enumerate(order):
+        fixed_intr[ci, 8] = intr[c].fix_k3
+
+    active = np.ones(len(uv), dtype=bool)
+    sol = None
+    for round_ in range(opts.max_rounds):
+        say(f"bundle adjustment, round {round_ + 1}")
+        problem = bundle.Problem(cam_idx[active], view_idx[active], object_points[ids[active]], uv[active], len(order), len(views))
+        sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr)
+        intr0, cams0, view_pose = sol.intrinsics, sol.cameras, sol.views
+        # RMS per (camera, view) observation.
+        key = problem.cam_idx * len(views) + problem.view_idx
+        sq = np.sum(sol.residuals ** 2, axis=1)
+        uniq, inv = np.unique(key, return_inverse=True)
+        rms = np.sqrt(np.bincount(inv, weights=sq) / np.bincount(inv))
+        limit = _threshold(list(rms), opts)
+        bad = uniq[rms > limit]
+        if len(bad) == 0:
+            break
+        med = float(np.median(rms))
+        for k, e in zip(uniq, rms):
+            if e > limit:
+                c, v = order[k // len(views)], views[k % len(views)]
+                rejected.append(Rejection(c, v, "joint", float(e),
+                                          f"reprojection RMS {e:.2f} px in the joint rig fit, above the limit {limit:.2f} px (median {med:.2f} px)"))
+        all_key = cam_idx * len(views) + view_idx
+        active &= ~np.isin(all_key, bad)
+        for ci, c in enumerate(order):
+            if not np.any(active & (cam_idx == ci)):
+                raise CalibrationError(f"camera '{c}': every view was rejected as an outlier; check the images of this camera")
+    assert sol is not None
+
+    cameras = []
+    for ci, c in enumerate(order):
+        fx, fy, cx, cy, *d = sol.intrinsics[ci]
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        R = rodrigues(sol.cameras[ci, :3])
+        w, h = detections.image_size[c]
+        cameras.append(CameraModel(c, w, h, K, np.array(d), R, sol.cameras[ci, 3:].copy()))
+    rig = RigCalibration(cameras, {})
+    obs = Observations(order, views, cam_idx[active], view_idx[active], ids[active], uv[active], sol.residuals)
+    result = CalibrationResult(rig, left, right, obs, intr, rejected, stereo, sol, dict(detections.image_size), dict(detections.images_seen))
+    rig.meta.update(summary_meta(result, board))
+    return result
+
+
+def summary_meta(result: CalibrationResult, board: BoardSpec) -> dict[str, Any]:
+    """The file's metadata: board, date, per-camera RMS and views, stereo RMS, baseline, rejections, report."""
+    from calibration.report import build_report
+
+    report = build_report(result)
+    return {
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "board": board.to_dict(),
+        "stereo_pair": {"left": result.left, "right": result.right},
+        "rms_px": report["rms_px"],
+        "stereo_rms_px": report["stereo_rms_px"],
+        "baseline_m": report["baseline_m"],
+        "views_used": report["views_used"],
+        "views": len(result.observations.views),
+        "rejected": [r.to_dict() for r in result.rejected],
+        "report": report,
+    }

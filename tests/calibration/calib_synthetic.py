@@ -1,0 +1,100 @@
+"""Board observations computed from known cameras (no images): the solver's own ground truth.
+
+Corners are projected with CameraModel.project (the same distortion model the file stores) and given
+Gaussian pixel noise, so a test can tell solver error from detection error.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.boards import BoardSpec
+from calibration.camera import CameraModel, RigCalibration, intrinsics_from_fov, look_at
+from calibration.detect import Corners
+from calibration.geometry import rodrigues
+from calibration.images import DetectionSet
+
+
+def arc_rig(n: int = 6, width: int = 1280, height: int = 720, radius: float = 3.0, spread_deg: float = 60.0) -> RigCalibration:
+    """n cameras on an arc facing the origin, left and right outermost, mild lens distortion."""
+    names = ["left"] + [f"sup{i}" for i in range(1, n - 1)] + ["right"]
+    cams = []
+    for i, name in enumerate(names):
+        a = np.radians(-spread_deg / 2 + spread_deg * i / (n - 1))
+        eye = np.array([radius * np.sin(a), 1.4 + 0.05 * i, radius * np.cos(a)])
+        R, t = look_at(eye, (0.0, 1.1, 0.0))
+        K = intrinsics_from_fov(width, height, 60.0 + 2 * i)
+        K[0, 2] += 7 - 3 * i
+        K[1, 2] += -4 + 2 * i
+        dist = np.array([-0.08 + 0.01 * i, 0.05, 0.0004, -0.0003, -0.01])
+        cams.append(CameraModel(name, width, height, K, dist, R, t))
+    return RigCalibration(cams)
+
+
+def board_poses(n_views: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Board-to-world poses: the board carried through the volume, tilted, roughly facing the arc."""
+    rng = np.random.default_rng(seed)
+    poses = []
+    for _ in range(n_views):
+        centre = np.array([rng.uniform(-0.8, 0.8), rng.uniform(0.6, 1.7), rng.uniform(-0.6, 0.8)])
+        # Board normal (its +z) points away from the cameras (towards -z world); tilt it up to ~35 degrees.
+        tilt = rng.normal(0, 0.35, size=3)
+        R = rodrigues(np.array([np.pi, 0.0, 0.0])) @ rodrigues(tilt)
+        poses.append((R, centre))
+    return poses
+
+
+def observe(rig: RigCalibration, board: BoardSpec, poses, noise_px: float = 0.1, seed: int = 1, min_corners: int = 6) -> DetectionSet:
+    rng = np.random.default_rng(seed)
+    ids, obj = board.object_points()
+    w_m, h_m = board.size_m
+    centre_board = np.array([w_m / 2, h_m / 2, 0.0])
+    corners: dict[str, dict[str, Corners]] = {c.name: {} for c in rig.cameras}
+    for v, (R, c) in enumerate(poses):
+        world = (obj - centre_board) @ R.T + c
+        normal = R[:, 2]
+        for cam in rig.cameras:
+            # A board seen from behind or edge-on is not detected.
+            view_dir = world.mean(axis=0) - cam.center
+            if np.dot(normal, view_dir) / np.linalg.norm(view_dir) < 0.3:
+                continue
+            uv, z = cam.project(world)
+            inside = (z > 0) & (uv[:, 0] > 2) & (uv[:, 1] > 2) & (uv[:, 0] < cam.width - 3) & (uv[:, 1] < cam.height - 3)
+            if inside.sum() < min_corners:
+                continue
+            pts = uv[inside] + rng.normal(0, noise_px, size=(int(inside.sum()), 2))
+            corners[cam.name][f"{v:04d}"] = Corners(ids[inside], pts)
+    sizes = {c.name: (c.width, c.height) for c in rig.cameras}
+    return DetectionSet(sizes, corners, {c.name: len(poses) for c in rig.cameras})
+
+
+def in_frame_of(rig: RigCalibration, ref: str) -> RigCalibration:
+    """The rig re-expressed with camera `ref` at the origin (X_ref = R_ref X + t_ref)."""
+    r = rig[ref]
+    out = []
+    for c in rig.cameras:
+        R = c.R @ r.R.T
+        t = c.t - R @ r.t
+        out.append(c.with_pose(R, t))
+    return RigCalibration(out, dict(rig.meta))
+
+
+def warp_board(board: BoardSpec, quad, size=(1280, 720), ppm: float = 1000.0, supersample: int = 4):
+    """The board's printable image seen through the homography that puts its square grid's corners at
+    `quad` (4 pixel positions, clockwise from the grid's top-left), antialiased by supersampling.
+
+    Returns (grey image, H) with H mapping board metres (x, y) to pixels.
+    """
+    import cv2
+
+    img = board.image(ppm)
+    m = board.margin_m
+    w_m, h_m = board.size_m
+    src = np.float32([[0, 0], [w_m, 0], [w_m, h_m], [0, h_m]])
+    H = cv2.getPerspectiveTransform(src, np.float32(quad))
+    # Board-image pixel centre i sits at board coordinate (i + 0.5) / ppm - margin.
+    A = np.array([[1 / ppm, 0, 0.5 / ppm - m], [0, 1 / ppm, 0.5 / ppm - m], [0, 0, 1]])
+    s = supersample
+    # Output pixel centre j is the mean of supersampled centres s*j .. s*j + s-1.
+    S = np.array([[s, 0, (s - 1) / 2], [0, s, (s - 1) / 2], [0, 0, 1]])
+    big = cv2.warpPerspective(img, S @ H @ A, (size[0] * s, size[1] * s), flags=cv2.INTER_LINEAR, borderValue=255)
+    return cv2.resize(big, size, interpolation=cv2.INTER_AREA), H

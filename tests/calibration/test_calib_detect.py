@@ -1,0 +1,80 @@
+"""Corner detection: exact corners with ids, partial ChArUco views, a consistent chessboard order."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from calib_synthetic import warp_board
+from calibration.boards import CharucoSpec, ChessboardSpec
+from calibration.detect import canonical_chessboard_order, detect
+
+QUAD = [[400, 150], [900, 200], [880, 560], [420, 600]]
+
+
+def _errors(board, corners, H):
+    _, obj = board.object_points()
+    truth = cv2.perspectiveTransform(obj[corners.ids, :2].reshape(-1, 1, 2), H).reshape(-1, 2)
+    e = corners.points - truth
+    return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))), float(np.abs(e).max())
+
+
+def test_charuco_corners_are_subpixel_accurate():
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    image, H = warp_board(board, QUAD)
+    corners = detect(board, image)
+    assert corners is not None and len(corners) == board.n_corners
+    rms, worst = _errors(board, corners, H)
+    print(f"\nChArUco corner error: RMS {rms:.3f} px, max {worst:.3f} px")
+    assert rms < 0.15 and worst < 0.3
+
+
+def test_partial_charuco_view_keeps_the_visible_corners_with_their_ids():
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    image, H = warp_board(board, QUAD)
+    image[:, :650] = 255  # something hides the left half of the board
+    corners = detect(board, image)
+    assert corners is not None and 6 <= len(corners) < board.n_corners
+    rms, _ = _errors(board, corners, H)
+    assert rms < 0.15
+    _, obj = board.object_points()
+    assert obj[corners.ids, 0].min() > 0.2  # only corners of the right-hand columns
+
+
+def test_chessboard_corners_are_subpixel_accurate():
+    board = ChessboardSpec(9, 6, 0.06)
+    image, H = warp_board(board, QUAD)
+    corners = detect(board, image)
+    assert corners is not None and len(corners) == 54
+    rms, worst = _errors(board, corners, H)
+    print(f"\nchessboard corner error: RMS {rms:.3f} px, max {worst:.3f} px")
+    assert rms < 0.15 and worst < 0.3
+
+
+def test_chessboard_order_is_the_same_when_the_board_is_turned_half_way():
+    # A 9x6 chessboard turned by 180 degrees looks the same; the detector may number it from either end.
+    # Canonical order numbers it from the end nearest the image's top-left both times.
+    board = ChessboardSpec(9, 6, 0.06)
+    image, _ = warp_board(board, QUAD)
+    turned = cv2.rotate(image, cv2.ROTATE_180)
+    a = detect(board, image)
+    b = detect(board, turned)
+    assert a is not None and b is not None
+    d = a.points[-1] - a.points[0]
+    assert d.sum() > 0
+    d = b.points[-1] - b.points[0]
+    assert d.sum() > 0
+    assert np.allclose(canonical_chessboard_order(a.points[::-1]), a.points)
+
+
+def test_no_board_gives_none():
+    blank = np.full((480, 640), 128, np.uint8)
+    assert detect(ChessboardSpec(9, 6, 0.024), blank) is None
+    assert detect(CharucoSpec(5, 7, 0.04, 0.03), blank) is None
+
+
+def test_rgb_and_grey_images_give_the_same_corners():
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    image, _ = warp_board(board, QUAD)
+    rgb = np.repeat(image[:, :, None], 3, axis=2)
+    a, b = detect(board, image), detect(board, rgb)
+    assert np.array_equal(a.ids, b.ids) and np.allclose(a.points, b.points)
