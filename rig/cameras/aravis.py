@@ -22,6 +22,7 @@ from sync.frames import Frame
 
 SCHEME = "aravis"
 N_BUFFERS = 16
+SOCKET_BUFFER_MIN = 4 * 1024 * 1024
 HARDWARE_TRIGGER_LINE = "Line0"
 
 _Aravis = None
@@ -185,9 +186,12 @@ class AravisCamera(Camera):
             stream = self._cam.create_stream(None, None)
         except Exception as exc:
             raise DeviceError(f"{self.uri}: cannot open a stream ({_glib_message(exc)})") from None
-        if self.is_gv:
-            stream.set_property("socket-buffer", Aravis.GvStreamSocketBuffer.AUTO)
         payload = self._cam.get_payload()
+        if self.is_gv:
+            # Room for several frames in the kernel's receive buffer, so a busy host loses nothing
+            # while the stream thread is descheduled (the kernel caps it at net.core.rmem_max).
+            stream.set_property("socket-buffer", Aravis.GvStreamSocketBuffer.FIXED)
+            stream.set_property("socket-buffer-size", max(4 * payload, SOCKET_BUFFER_MIN))
         for _ in range(self._n_buffers):
             stream.push_buffer(Aravis.Buffer.new_allocate(payload))
         self._stream = stream
@@ -218,10 +222,11 @@ class AravisCamera(Camera):
         if not self._running:
             return
         self._running = False
-        try:
-            self._cam.stop_acquisition()
-        except Exception:
-            pass  # a vanished camera cannot be stopped; frames already delivered stay valid
+        if not self._lost:  # a vanished camera cannot be stopped; frames already delivered stay valid
+            try:
+                self._cam.stop_acquisition()
+            except Exception:
+                self._lost = True
         self._stream = None  # unref: ends the stream thread and frees the buffer pool
 
     def close(self) -> None:
@@ -239,7 +244,9 @@ class AravisCamera(Camera):
         try:
             self._cam.software_trigger()
         except Exception as exc:
-            self._lost = not self._answers()
+            # A control-channel timeout already means the device stopped answering; anything else
+            # (e.g. an access error) is checked with one more read.
+            self._lost = "timeout" in _glib_message(exc).lower() or not self._answers()
             if self._lost:
                 raise CameraDisconnected(f"{self.name} ({self.uri}): camera stopped answering ({_glib_message(exc)})") from None
             raise DeviceError(f"{self.name} ({self.uri}): software trigger failed ({_glib_message(exc)})") from None

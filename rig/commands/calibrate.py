@@ -153,6 +153,108 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
-    from rig.calibration_capture import capture_views
+    """Pull synchronised frame sets from the rig, keep those that add coverage, write DIR/CAMNAME/NNNN.png."""
+    import dataclasses
+    import time
 
-    return capture_views(args)
+    import cv2
+
+    from calibration.boards import load_board
+    from calibration.detect import make_detector, to_gray
+    from calibration.selection import ViewSelector
+    from rig.cameras import open_camera
+    from rig.cli import emit_json
+    from rig.config import load_config
+    from rig.errors import ConfigError, StorageError
+
+    cfg = load_config(args.config)
+    board = load_board(args.board)
+    if args.views < 1 or args.max_frames < 1:
+        raise ConfigError("--views and --max-frames must be at least 1")
+    out = Path(args.output)
+    if out.exists() and any(out.iterdir()):
+        raise ConfigError(f"{out}: folder is not empty; views are numbered from 0000, choose a new folder")
+    detector = make_detector(board)
+    # Calibration views are stills: cameras that take triggers are fired by software so that every
+    # camera exposes the same instant without the trigger board; free-running ones are paired by time.
+    settings = [dataclasses.replace(c, trigger="software" if c.trigger in ("hardware", "software") else "free") for c in cfg.cameras]
+    cameras = []
+    status = _status()
+    kept: list[dict] = []
+    looked = 0
+    try:
+        for s in settings:
+            cameras.append(open_camera(s))
+        for cam in cameras:
+            cam.start()
+        selector = ViewSelector({s.name: (s.width, s.height) for s in settings})
+        while looked < args.max_frames and len(kept) < args.views:
+            images = _grab_set(cameras, args.timeout)
+            looked += 1
+            detections = {name: detector(img) for name, img in images.items()}
+            verdict = selector.consider(detections)
+            if verdict.keep:
+                index = len(kept)
+                for name, img in images.items():
+                    path = out / name / f"{index:04d}.png"
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    if not cv2.imwrite(str(path), _to_bgr(img, to_gray)):
+                        raise StorageError(f"{path}: could not write the image (disk full or no permission?)")
+                kept.append({"view": f"{index:04d}", "cameras": verdict.cameras, "reason": verdict.reason})
+            status.update(f"looked at {looked} views, kept {len(kept)}/{args.views}")
+            if args.interval > 0:
+                time.sleep(args.interval)
+    finally:
+        for cam in cameras:
+            try:
+                cam.stop()
+                cam.close()
+            except Exception:  # closing must not hide the error that stopped the capture
+                pass
+    status.done()
+    summary = {"output": str(out), "views_kept": len(kept), "views_looked_at": looked, "coverage": selector.coverage(), "kept": kept}
+    if args.json:
+        emit_json(summary)
+    else:
+        for k in kept:
+            print(f"{k['view']}: {k['reason']} (board seen by {', '.join(k['cameras'])})")
+        cov = ", ".join(f"{n} {v * 100:.0f}%" for n, v in summary["coverage"].items())
+        print(f"kept {len(kept)} of {looked} views in {out}; coverage {cov}")
+        print(f"next: rig calibrate run --images {out} --board {args.board} -o calib.json")
+    return 0
+
+
+def _to_bgr(image, to_gray):
+    """PNG-ready pixels: mono stays mono, RGB becomes OpenCV's BGR order."""
+    import cv2
+    import numpy as np
+
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 3:
+        return cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    if img.dtype != np.uint8 and img.dtype != np.uint16:
+        return to_gray(img)
+    return img
+
+
+def _grab_set(cameras, timeout: float) -> dict:
+    """One synchronised set of images: software-triggered cameras fire together; free-running cameras
+    give their newest frame."""
+    from rig.errors import CameraTimeout
+
+    triggered = [c for c in cameras if c.settings.trigger == "software"]
+    for cam in triggered:
+        cam.software_trigger()
+    images = {}
+    for cam in cameras:
+        if cam.settings.trigger == "software":
+            images[cam.name] = cam.get_frame(timeout).image
+        else:
+            frame = cam.get_frame(timeout)
+            while True:  # drop what queued up while we were detecting: the newest frame is the present
+                try:
+                    frame = cam.get_frame(0.0)
+                except CameraTimeout:
+                    break
+            images[cam.name] = frame.image
+    return images

@@ -1,0 +1,90 @@
+"""The sim:// camera honours the camera contract: trigger modes, drops, its own clock, disconnects."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from rig.cameras import open_camera
+from rig.config import CameraConfig
+from rig.errors import CameraDisconnected, CameraTimeout, ConfigError
+
+
+def sim_camera(trigger="free", fps=100.0, **sim):
+    return open_camera(CameraConfig(name="cam", uri="sim://left", trigger=trigger, fps=fps, width=64, height=48,
+                                    pixel_format="RGB8", exposure_us=1000.0, sim=sim))
+
+
+def test_free_run_delivers_at_fps():
+    with sim_camera("free", fps=100) as cam:
+        cam.start()
+        frames = [cam.get_frame(1.0) for _ in range(30)]
+    ids = [f.frame_id for f in frames]
+    assert ids == list(range(ids[0], ids[0] + 30))
+    period_ms = np.median(np.diff([f.device_ts_ns for f in frames])) / 1e6
+    assert period_ms == pytest.approx(10.0, abs=0.5)
+    assert frames[0].image.shape == (48, 64, 3) and frames[0].image.dtype == np.uint8
+
+
+def test_software_trigger_gives_one_frame_per_trigger():
+    with sim_camera("software") as cam:
+        cam.start()
+        for _ in range(5):
+            cam.software_trigger()
+            cam.get_frame(1.0)
+        with pytest.raises(CameraTimeout):
+            cam.get_frame(0.1)  # no trigger, no frame
+    assert cam.stats.delivered == 5 and cam.stats.timeouts == 1
+
+
+def test_hardware_trigger_records_which_pulse_each_frame_answered():
+    with sim_camera("hardware", latency_us=30.0, jitter_us=5.0) as cam:
+        cam.start()
+        t0 = time.monotonic_ns()
+        for k in range(5):
+            cam.hardware_trigger(k, t0 + k * 5_000_000)
+        frames = [cam.get_frame(1.0) for _ in range(5)]
+    assert [cam.truth_pulse[f.frame_id] for f in frames] == [0, 1, 2, 3, 4]
+    with pytest.raises(ConfigError):
+        with sim_camera("free") as other:
+            other.start()
+            other.software_trigger()  # wrong mode is a clear error, not silence
+
+
+def test_drops_leave_gaps_that_the_stats_count():
+    with sim_camera("free", fps=400, drop_rate=0.2, seed=3) as cam:
+        cam.start()
+        frames = [cam.get_frame(1.0) for _ in range(100)]
+    ids = [f.frame_id for f in frames]
+    gaps = sum(b - a - 1 for a, b in zip(ids, ids[1:]))
+    assert gaps == cam.stats.dropped and 5 < gaps < 60
+
+
+def test_device_clock_has_offset_and_drift():
+    with sim_camera("free", fps=200, clock_offset_ns=5_000_000_000, drift_ppm=1000.0) as cam:
+        cam.start()
+        frames = [cam.get_frame(1.0) for _ in range(40)]
+    dev = np.array([f.device_ts_ns for f in frames], dtype=np.float64)
+    nominal = 5e6 * np.arange(len(frames))  # 200 fps ticks on the host clock
+    slope = np.polyfit(nominal, dev - dev[0], 1)[0]
+    assert slope == pytest.approx(1.001, abs=2e-5)
+    assert dev[0] > 5e9
+
+
+def test_bayer_sensor_delivers_rgb_frames():
+    cfg = CameraConfig(name="cam", uri="sim://left", trigger="free", fps=100, width=64, height=48, pixel_format="BayerRG8")
+    with open_camera(cfg) as cam:
+        cam.start()
+        f = cam.get_frame(1.0)
+    assert f.image.shape == (48, 64, 3) and f.pixel_format == "BayerRG8"
+
+
+def test_unplugged_camera_reports_disconnect():
+    with sim_camera("free") as cam:
+        cam.start()
+        cam.get_frame(1.0)
+        cam.unplug()
+        with pytest.raises(CameraDisconnected):
+            for _ in range(200):
+                cam.get_frame(0.5)
