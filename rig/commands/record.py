@@ -1,0 +1,83 @@
+"""`rig record`: record synced, calibrated sequences; `validate` and `repair` them."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("record", help="record every camera of the rig in sync to a sequence folder; validate or repair one")
+    p.add_argument("action", nargs="?", choices=("validate", "repair"), help="validate DIR | repair DIR (omit to record)")
+    p.add_argument("dir", nargs="?", type=Path, help="sequence folder (validate / repair)")
+    p.add_argument("-c", "--config", type=Path, help="rig configuration (TOML), to record")
+    p.add_argument("-o", "--out", type=Path, help="new sequence folder, to record")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--seconds", type=float, help="record for this long")
+    g.add_argument("--sets", type=int, help="record this many frame sets")
+    p.add_argument("--pixels", action="store_true", help="validate: also decode every image (slower)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_record)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from rig.errors import ConfigError
+
+    if args.action == "validate":
+        return _validate(args)
+    if args.action == "repair":
+        return _repair(args)
+    if args.config is None or args.out is None:
+        raise ConfigError("record: needs -c RIG.toml and -o DIR (or: rig record validate|repair DIR)")
+    from rig.record import record_rig
+
+    return record_rig(args)
+
+
+def _need_dir(args) -> Path:
+    from rig.errors import ConfigError
+
+    if args.dir is None:
+        raise ConfigError(f"record {args.action}: name the sequence folder")
+    if not args.dir.is_dir():
+        raise ConfigError(f"{args.dir}: no such sequence folder")
+    return args.dir
+
+
+def _validate(args) -> int:
+    from rig.cli import emit_json
+    from rig.sequence import validate
+
+    v = validate(_need_dir(args), check_pixels=args.pixels)
+    if args.json:
+        emit_json(v.to_dict())
+    else:
+        d = v.to_dict()
+        print(f"{v.root}: {'readable' if v.readable else 'NOT readable'}; {v.sets} sets ({v.complete_sets} complete), "
+              f"{d['duration_s']:.1f} s, gaps {v.gaps}, calibrated: {'yes' if v.calibrated else 'no'}")
+        for cam, n in v.frames.items():
+            print(f"  {cam}: {n} frames, {v.missing[cam]} missing")
+        if v.skew_us:
+            print(f"  skew: p50 {v.skew_us['p50']:.0f} us, p99 {v.skew_us['p99']:.0f} us, max {v.skew_us['max']:.0f} us")
+        for w in v.warnings:
+            print(f"  warning: {w}")
+        for e in v.errors[:20]:
+            print(f"  error: {e}")
+        if len(v.errors) > 20:
+            print(f"  ... and {len(v.errors) - 20} more errors")
+    if not v.readable:
+        print(f"rig: error: {v.root}: {len(v.errors)} problems (first: {v.errors[0]})", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _repair(args) -> int:
+    from rig.cli import emit_json
+    from rig.sequence import repair
+
+    r = repair(_need_dir(args))
+    if args.json:
+        emit_json(r)
+    else:
+        print(f"{r['path']}: kept {r['kept_sets']} sets, removed {r['removed_bytes']} bytes of torn index")
+    return 0

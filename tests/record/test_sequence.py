@@ -1,0 +1,119 @@
+"""Sequence writer, validation, repair and the dataset reader, on frames from simulated cameras."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calibration.camera import CameraModel, RigCalibration
+from rig.cameras import open_camera
+from rig.config import CameraConfig
+from rig.dataset import Sequence
+from rig.recorder import SequenceWriter
+from rig.sequence import INDEX, read_netpbm, repair, validate
+from sync.frames import FrameSet
+from tests.rig.cli_helpers import assert_one_line_error, run_rig
+
+CAMS = [
+    CameraConfig(name="left", uri="sim://left", role="left", width=64, height=48, pixel_format="RGB8", trigger="software"),
+    CameraConfig(name="right", uri="sim://right", role="right", width=64, height=48, pixel_format="Mono8", trigger="software"),
+]
+
+
+def capture_sets(n: int, drop_right_every: int = 0):
+    cams = [open_camera(c) for c in CAMS]
+    for c in cams:
+        c.start()
+    try:
+        for i in range(n):
+            frames = {}
+            for c in cams:
+                c.software_trigger()
+                frames[c.name] = c.get_frame(1.0)
+            if drop_right_every and i % drop_right_every == drop_right_every - 1:
+                frames["right"] = None
+            yield FrameSet(index=i, frames=frames, host_ts_ns=frames["left"].host_ts_ns)
+    finally:
+        for c in cams:
+            c.close()
+
+
+def write_sequence(root, n=12, calibration=None, **kw):
+    w = SequenceWriter(root, CAMS, rig_name="t", rate_hz=30.0, calibration_file=calibration)
+    sets = list(capture_sets(n, **kw))
+    for fs in sets:
+        assert w.write(fs)
+    w.close()
+    return sets
+
+
+def calibration_file(tmp_path):
+    cams = [CameraModel(c.name, c.width, c.height, [[50, 0, 31.5], [0, 50, 23.5], [0, 0, 1]], t=[0.1 * i, 0, 0])
+            for i, c in enumerate(CAMS)]
+    path = tmp_path / "calib.json"
+    RigCalibration(cams).save(path)
+    return path
+
+
+def test_written_sequence_validates_and_reads_back(tmp_path):
+    seq_dir = tmp_path / "seq"
+    sets = write_sequence(seq_dir, n=12, calibration=calibration_file(tmp_path), drop_right_every=4)
+    v = validate(seq_dir, check_pixels=True)
+    assert v.readable and not v.errors, v.errors
+    assert v.sets == 12 and v.complete_sets == 9
+    assert v.frames == {"left": 12, "right": 9} and v.missing["right"] == 3
+    assert v.calibrated
+    rows = [json.loads(line) for line in (seq_dir / INDEX).read_text().splitlines()]
+    first = rows[0]["frames"]["left"]
+    assert np.array_equal(read_netpbm(seq_dir / first["file"]), sets[0].frames["left"].image)
+    assert first["frame_id"] == sets[0].frames["left"].frame_id
+    seq = Sequence(seq_dir)
+    samples = list(seq.samples(cameras=["left", "right"], size=(32, 24)))
+    assert len(samples) == 9  # sets where both cameras have a frame
+    s = samples[0]
+    assert s.images["left"].shape == (24, 32, 3) and s.images["right"].shape == (24, 32, 3)
+    assert s.cameras["left"].fx == pytest.approx(25.0) and s.cameras["left"].cx == pytest.approx(15.5)
+    assert s.depth["left"] is None  # not a simulator take
+
+
+def test_torn_tail_is_reported_and_repaired(tmp_path):
+    seq_dir = tmp_path / "seq"
+    write_sequence(seq_dir, n=6)
+    index = seq_dir / INDEX
+    data = index.read_bytes()
+    index.write_bytes(data + data.splitlines(keepends=True)[-1][:40])  # the recorder died mid-row
+    v = validate(seq_dir)
+    assert v.readable and v.torn_tail and v.sets == 6
+    r = repair(seq_dir)
+    assert r["kept_sets"] == 6 and r["removed_bytes"] == 40
+    assert index.read_bytes() == data
+    assert not validate(seq_dir).torn_tail
+
+
+def test_missing_image_is_an_error_and_repair_cuts_before_it(tmp_path):
+    seq_dir = tmp_path / "seq"
+    write_sequence(seq_dir, n=6)
+    rows = [json.loads(line) for line in (seq_dir / INDEX).read_text().splitlines()]
+    (seq_dir / rows[4]["frames"]["left"]["file"]).unlink()
+    proc = run_rig("record", "validate", seq_dir, "--json")
+    assert proc.returncode == 1
+    out = json.loads(proc.stdout)
+    assert out["readable"] is False and out["readable_sets"] == 4 and "missing" in out["errors"][0]
+    repair(seq_dir)
+    again = validate(seq_dir)
+    assert again.readable and again.sets == 4
+
+
+def test_validate_rejects_a_folder_that_is_not_a_sequence(tmp_path):
+    assert_one_line_error(run_rig("record", "validate", tmp_path), "not a sequence")
+    assert_one_line_error(run_rig("record", "validate", tmp_path / "nope"), "no such sequence folder")
+
+
+def test_writer_refuses_to_overwrite(tmp_path):
+    seq_dir = tmp_path / "seq"
+    write_sequence(seq_dir, n=2)
+    from rig.errors import StorageError
+
+    with pytest.raises(StorageError, match="already holds a sequence"):
+        SequenceWriter(seq_dir, CAMS)
