@@ -62,6 +62,8 @@ class FrameSet:
     index: int
     frames: dict[str, Optional[Frame]] = field(default_factory=dict)
     host_ts_ns: Optional[int] = None
+    trigger_index: Optional[int] = None  # the trigger pulse (counted from 0 in its train), when triggered
+    train: int = 0  # which pulse train of the session (a new one after the trigger board came back)
 
     @property
     def cameras(self) -> list[str]:

@@ -1,0 +1,471 @@
+"""Frame grouping: each Frame to its trigger pulse, FrameSets out in pulse order.
+
+Hardware-triggered cameras. A camera's device timestamps and the board's pulse times are two clocks
+watching the same events, so device_ts = a + b * pulse_board_us (+ trigger-latency jitter) holds
+for every frame; b absorbs the drift between the two crystals and a the camera's clock offset plus
+its mean trigger latency. The first frame of a camera is anchored by host time (it belongs to the
+latest pulse that fired before it arrived, allowing for its exposure); from then on the line is
+fitted to the matched pairs and each frame goes to the pulse nearest its predicted board time, so
+dropped frames, pulses the camera never saw, late or lost pulse reports and slow delivery all leave
+the assignment right. Frame ids tell the two kinds of loss apart: a gap in ids is a frame the camera
+took and lost; a pulse skipped with no gap is a trigger the camera never answered.
+
+Cameras that cannot be triggered (free-run, or software triggers) are grouped by host time: the
+frame whose exposure start is nearest the pulse's host time, within half a period. With no trigger
+board at all, a reference camera's frames define the instants.
+
+A set is emitted once every camera is past its pulse (cameras deliver in order) or its time is up,
+never before; a camera with nothing for a pulse leaves None there (a detected drop). Frames of two
+pulses never share a set: each set is one pulse, and a second frame for a pulse is set aside as a
+duplicate.
+"""
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Optional, Protocol
+
+import numpy as np
+
+from sync.frames import Frame, FrameSet
+from sync.protocol import pulse_offset_us
+
+HARDWARE = "hardware"
+TIMED = "timed"  # free-run or software-triggered: grouped by host time
+
+
+class BoardClock(Protocol):
+    ready: bool
+
+    def board_to_host_ns(self, board_us: float) -> int: ...
+
+    def host_to_board_us(self, host_ns: int) -> float: ...
+
+
+@dataclass
+class CameraCounters:
+    frames: int = 0  # received
+    grouped: int = 0  # placed in a set
+    drops: int = 0  # sets emitted without this camera
+    lost_frames: int = 0  # gaps in frame ids: exposures the camera made that never arrived
+    missed_triggers: int = 0  # pulses skipped without a gap in frame ids: the camera never exposed
+    duplicates: int = 0  # a second frame for a pulse already filled
+    unassigned: int = 0  # frames that fit no pulse (before the first, after the last, ambiguous)
+    reanchors: int = 0  # the device-time model was rebuilt from host time
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Track:
+    name: str
+    mode: str
+    counters: CameraCounters = field(default_factory=CameraCounters)
+    pending: deque = field(default_factory=deque)  # frames waiting for a timeline
+    # hardware: device_ts_ns ~ dev_ref + offset_ns + slope * (board_us - board_ref)
+    anchored: bool = False
+    board_ref: int = 0
+    dev_ref: int = 0
+    offset_ns: float = 0.0
+    slope: float = 1000.0
+    pairs: deque = field(default_factory=lambda: deque(maxlen=64))  # (board_us - board_ref, device_ts - dev_ref)
+    last_pulse: Optional[int] = None
+    last_frame_id: Optional[int] = None  # of the last frame assigned
+    last_seen_id: Optional[int] = None  # of the last frame received
+    suspicious: int = 0
+    # timed: frames not yet claimed by a set, by host exposure-start time
+    timed: deque = field(default_factory=deque)
+    past_ns: int = -(2**62)  # host exposure-start time of the newest frame
+    alive: bool = True
+
+
+@dataclass
+class _Slot:
+    frame: Frame
+    offset_ns: float  # timing residual: device-time model residual (hardware) or host-time distance (timed)
+
+
+@dataclass
+class _Pending:
+    pulse: int
+    frames: dict = field(default_factory=dict)  # camera -> _Slot
+
+
+class FrameGrouper:
+    """Groups frames into sets, one per trigger pulse. Thread-safe.
+
+    cameras: name -> HARDWARE or TIMED, in the order sets list them.
+    rate_hz: the trigger rate (with a board) or the reference camera's frame rate (without).
+    clock: the board clock model (board us -> host ns); None when there is no trigger board, and
+    then `reference` names the camera whose frames define the instants.
+    max_wait_s: how long after its pulse a set waits for a camera that is not past it.
+    """
+
+    ANCHOR_FRAMES = 3
+
+    def __init__(self, cameras: dict[str, str], rate_hz: float, clock: Optional[BoardClock] = None,
+                 reference: Optional[str] = None, max_wait_s: Optional[float] = None):
+        if not cameras:
+            raise ValueError("no cameras to group")
+        for name, mode in cameras.items():
+            if mode not in (HARDWARE, TIMED):
+                raise ValueError(f"{name}: grouping mode must be {HARDWARE!r} or {TIMED!r}, got {mode!r}")
+        if clock is None and reference is None:
+            reference = next(iter(cameras))
+        if clock is None and any(m == HARDWARE for m in cameras.values()):
+            raise ValueError("hardware-triggered cameras need the trigger board's clock")
+        self.clock = clock
+        self.reference = reference if clock is None else None
+        self.rate_mhz = int(round(rate_hz * 1000))
+        self.period_ns = 1e12 / self.rate_mhz
+        self.max_wait_ns = int((max_wait_s if max_wait_s is not None else max(0.5, 4 * self.period_ns / 1e9)) * 1e9)
+        self.tracks = {name: _Track(name, mode) for name, mode in cameras.items()}
+        self._lock = threading.RLock()
+        # the pulse timeline of the current epoch
+        self.epoch = 0
+        self._base = 0  # set index of pulse 0 of this epoch
+        self._start_us: Optional[int] = None
+        self._events: dict[int, int] = {}  # pulse index -> board us (reported)
+        self._host: dict[int, int] = {}  # pulse index -> host ns (reference camera, no board)
+        self._max_pulse = -1
+        self._done: Optional[int] = None
+        self._next_emit = 0  # next pulse index to emit in this epoch
+        self._sets: dict[int, _Pending] = {}
+        self.emitted = 0
+        self.complete = 0
+        self.skews_ns: list[float] = []
+        self.mapped_pulses: list[tuple[int, int, int]] = []  # (epoch, pulse, host ns as mapped when reported)
+        self._flushed: list[FrameSet] = []  # sets of an ended epoch, handed out by the next poll
+
+    # --- inputs -----------------------------------------------------------------------------------
+    def add_pulse(self, index: int, board_us: int) -> None:
+        """A pulse the board reported (index counts from 0 in this epoch)."""
+        with self._lock:
+            if index in self._events:
+                return
+            self._events[index] = board_us
+            if self._start_us is None:
+                self._start_us = board_us - pulse_offset_us(index, self.rate_mhz)
+            self._max_pulse = max(self._max_pulse, index)
+            if self.clock is not None and self.clock.ready:
+                self.mapped_pulses.append((self.epoch, index, self.clock.board_to_host_ns(board_us)))
+            self._retry_pending()
+
+    def end_of_train(self, pulses: int) -> None:
+        """The board ended the train after `pulses` pulses (DONE)."""
+        with self._lock:
+            self._done = pulses
+            self._max_pulse = max(self._max_pulse, pulses - 1)
+
+    def new_epoch(self) -> None:
+        """A new pulse train with indices from 0 again (board restarted, or START after STOP)."""
+        with self._lock:
+            self._retry_pending(force=True)
+            self._emit_ready(now_ns=None, flush=True, out=self._flushed)
+            self.epoch += 1
+            self._base = self._base + max(self._next_emit, self._max_pulse + 1)
+            self._start_us = None
+            self._events.clear()
+            self._host.clear()
+            self._max_pulse = -1
+            self._done = None
+            self._next_emit = 0
+            self._sets.clear()
+            for t in self.tracks.values():
+                t.anchored = False
+                t.pairs.clear()
+                t.last_pulse = None
+                t.pending.clear()
+                t.timed.clear()
+                t.past_ns = -(2**62)
+
+    def camera_lost(self, name: str) -> None:
+        """The camera is gone: sets stop waiting for it."""
+        with self._lock:
+            self.tracks[name].alive = False
+
+    def add_frame(self, frame: Frame) -> None:
+        with self._lock:
+            track = self.tracks.get(frame.camera)
+            if track is None:
+                raise ValueError(f"frame from unknown camera {frame.camera!r}")
+            track.counters.frames += 1
+            if track.last_seen_id is not None and frame.frame_id > track.last_seen_id + 1:
+                track.counters.lost_frames += frame.frame_id - track.last_seen_id - 1
+            track.last_seen_id = frame.frame_id
+            if self.reference == frame.camera:
+                self._add_reference(track, frame)
+            elif track.mode == HARDWARE:
+                track.pending.append(frame)
+                self._retry_pending()
+            else:
+                self._add_timed(track, frame)
+
+    # --- outputs ----------------------------------------------------------------------------------
+    def poll(self, now_ns: int) -> list[FrameSet]:
+        """Sets that are ready, in order."""
+        out: list[FrameSet] = []
+        with self._lock:
+            out.extend(self._take_flushed())
+            self._retry_pending(now_ns)
+            self._emit_ready(now_ns, flush=False, out=out)
+        return out
+
+    def flush(self) -> list[FrameSet]:
+        """Every remaining set of pulses known to have fired (end of run)."""
+        out: list[FrameSet] = []
+        with self._lock:
+            out.extend(self._take_flushed())
+            self._retry_pending(force=True)
+            self._emit_ready(now_ns=None, flush=True, out=out)
+        return out
+
+    def _take_flushed(self) -> list[FrameSet]:
+        out, self._flushed = self._flushed, []
+        return out
+
+    def stats(self) -> dict:
+        with self._lock:
+            skews = np.array(self.skews_ns, dtype=np.float64) / 1000.0
+            return {
+                "sets": self.emitted,
+                "complete_sets": self.complete,
+                "cameras": {n: t.counters.to_dict() for n, t in self.tracks.items()},
+                "skew_us": {
+                    "p50": float(np.percentile(skews, 50)) if len(skews) else None,
+                    "p99": float(np.percentile(skews, 99)) if len(skews) else None,
+                    "max": float(skews.max()) if len(skews) else None,
+                },
+            }
+
+    # --- the pulse timeline -----------------------------------------------------------------------
+    def _board_time(self, k: int) -> float:
+        t = self._events.get(k)
+        if t is not None:
+            return float(t)
+        return float(self._start_us + pulse_offset_us(k, self.rate_mhz))
+
+    def _pulse_host(self, k: int) -> int:
+        if self.clock is None:
+            return self._host[k]
+        return self.clock.board_to_host_ns(self._board_time(k))
+
+    def _pulse_at_or_before_board(self, board_us: float) -> int:
+        k = int(np.floor((board_us - self._start_us) * self.rate_mhz / 1e9))
+        while self._board_time(k + 1) <= board_us:
+            k += 1
+        while k >= 0 and self._board_time(k) > board_us:
+            k -= 1
+        return k
+
+    def _nearest_pulse(self, board_us: float) -> int:
+        k = int(round((board_us - self._start_us) * self.rate_mhz / 1e9))
+        return min((k - 1, k, k + 1), key=lambda j: abs(self._board_time(j) - board_us))
+
+    def _fired(self, k: int) -> bool:
+        """Whether pulse k is known to have fired."""
+        return 0 <= k <= self._max_pulse and (self._done is None or k < self._done)
+
+    # --- hardware-triggered cameras ---------------------------------------------------------------
+    def _retry_pending(self, now_ns: Optional[int] = None, force: bool = False) -> None:
+        if self._start_us is None or self.clock is None or not self.clock.ready:
+            return
+        for track in self.tracks.values():
+            if not track.pending:
+                continue
+            if not track.anchored:
+                # anchor on a few frames; a lone frame waits a little for company
+                old = now_ns is not None and now_ns - track.pending[0].host_ts_ns > self.max_wait_ns // 2
+                if len(track.pending) < self.ANCHOR_FRAMES and not (force or old):
+                    continue
+                self._anchor(track, list(track.pending)[: self.ANCHOR_FRAMES])
+            while track.pending:
+                frame = track.pending.popleft()
+                self._assign_hardware(track, frame)
+                track.last_frame_id = frame.frame_id
+
+    def _anchor(self, track: _Track, frames: list[Frame]) -> None:
+        """Tie the camera's clock to the pulse timeline from host arrival times.
+
+        A frame arrives after its pulse fired and its exposure ended, so each frame's arrival bounds
+        its pulse index from above; the device timestamps give the pulse steps between the frames.
+        The first frame's pulse is the tightest of those bounds: the frame delivered fastest decides,
+        so one slow delivery cannot shift the anchor onto a later pulse.
+        """
+        tolerance_ns = min(2_000_000, int(self.period_ns / 4))
+        first = frames[0]
+        k0 = None
+        for frame in frames:
+            exposure_ns = int((frame.exposure_us or 0.0) * 1000)
+            board_limit = self.clock.host_to_board_us(frame.host_ts_ns - exposure_ns + tolerance_ns)
+            k_max = self._pulse_at_or_before_board(board_limit)
+            steps = int(round((frame.device_ts_ns - first.device_ts_ns) / self.period_ns))
+            bound = k_max - steps
+            k0 = bound if k0 is None else min(k0, bound)
+        if self._done is not None:
+            k0 = min(k0, self._done - 1)
+        if k0 < 0:
+            track.counters.unassigned += 1  # exposed before the first pulse: not ours
+            track.pending.popleft()
+            track.last_frame_id = first.frame_id
+            if track.pending:
+                self._anchor(track, list(track.pending)[: self.ANCHOR_FRAMES])
+            return
+        track.anchored = True
+        track.board_ref = int(self._board_time(k0))
+        track.dev_ref = first.device_ts_ns
+        track.offset_ns = 0.0
+        track.slope = 1000.0
+        track.pairs.clear()
+        track.suspicious = 0
+
+    def _assign_hardware(self, track: _Track, frame: Frame) -> None:
+        if not track.anchored:
+            self._anchor(track, [frame])
+            if not track.anchored:
+                return
+        tolerance_ns = min(2_000_000, int(self.period_ns / 4))
+        predicted = track.board_ref + (frame.device_ts_ns - track.dev_ref - track.offset_ns) / track.slope
+        k = self._nearest_pulse(predicted)
+        residual_ns = (predicted - self._board_time(k)) * track.slope
+        arrived_early = self._pulse_host(k) > frame.host_ts_ns + tolerance_ns  # before its pulse fired?
+        if abs(residual_ns) > self.period_ns / 4 or arrived_early or k < 0:
+            track.counters.unassigned += 1
+            track.suspicious += 1
+            if track.suspicious >= 3:  # three in a row: the model is wrong (camera restarted?)
+                track.anchored = False
+                track.counters.reanchors += 1
+            return
+        track.suspicious = 0
+        board_k = self._board_time(k)
+        track.pairs.append((board_k - track.board_ref, float(frame.device_ts_ns - track.dev_ref)))
+        self._refit(track)
+        # frame ids against pulses: a gap in ids is a lost frame, a pulse skipped without one a missed trigger
+        if track.last_pulse is not None and track.last_frame_id is not None and k > track.last_pulse:
+            skipped = k - track.last_pulse - 1
+            lost = max(0, frame.frame_id - track.last_frame_id - 1)
+            if skipped > lost:
+                track.counters.missed_triggers += skipped - lost
+        self._place(track, k, frame, residual_ns)
+
+    def _refit(self, track: _Track) -> None:
+        if len(track.pairs) < 2:
+            x, y = track.pairs[0]
+            track.offset_ns, track.slope = y - 1000.0 * x, 1000.0
+            return
+        xy = np.array(track.pairs, dtype=np.float64)
+        x, y = xy[:, 0], xy[:, 1]
+        if np.ptp(x) < 0.2e6:  # under 0.2 s: too short to tell the slope from jitter
+            track.offset_ns, track.slope = float(np.mean(y - 1000.0 * x)), 1000.0
+            return
+        xm, ym = x.mean(), y.mean()
+        slope = float(np.sum((x - xm) * (y - ym)) / np.sum((x - xm) ** 2))
+        track.slope, track.offset_ns = slope, float(ym - slope * xm)
+
+    # --- timed cameras and the reference camera ---------------------------------------------------
+    def _exposure_start_host(self, frame: Frame) -> int:
+        return frame.host_ts_ns - int((frame.exposure_us or 0.0) * 1000)
+
+    def _add_reference(self, track: _Track, frame: Frame) -> None:
+        k = self._max_pulse + 1
+        self._host[k] = self._exposure_start_host(frame)
+        self._max_pulse = k
+        if self._start_us is None:
+            self._start_us = 0
+        self._place(track, k, frame, 0.0)
+
+    def _add_timed(self, track: _Track, frame: Frame) -> None:
+        t = self._exposure_start_host(frame)
+        track.timed.append((t, frame))
+        track.past_ns = max(track.past_ns, t)
+        while len(track.timed) > 256:  # a camera far ahead of the pulses: forget the oldest
+            track.timed.popleft()
+            track.counters.unassigned += 1
+
+    def _claim_timed(self, track: _Track, k: int) -> None:
+        """Give set k the timed camera's frame nearest the pulse, within half a period."""
+        host_k = self._pulse_host(k)
+        half = self.period_ns / 2
+        best = None
+        while track.timed and track.timed[0][0] < host_k - half:
+            track.timed.popleft()  # too early for this set and every later one
+            track.counters.unassigned += 1
+        for i, (t, frame) in enumerate(track.timed):
+            if t > host_k + half:
+                break
+            if best is None or abs(t - host_k) < abs(track.timed[best][0] - host_k):
+                best = i
+        if best is not None:
+            t, frame = track.timed[best]
+            for _ in range(best + 1):
+                dropped = track.timed.popleft()
+                if dropped[1] is not frame:
+                    track.counters.unassigned += 1
+            self._place(track, k, frame, float(t - host_k))
+
+    def _timed_past(self, track: _Track, k: int) -> bool:
+        return track.past_ns > self._pulse_host(k) + self.period_ns / 2
+
+    # --- sets -------------------------------------------------------------------------------------
+    def _place(self, track: _Track, k: int, frame: Frame, offset_ns: float) -> None:
+        if k < self._next_emit:
+            track.counters.duplicates += 1  # its set is gone already: a late second frame
+            return
+        pending = self._sets.setdefault(k, _Pending(k))
+        if track.name in pending.frames:
+            track.counters.duplicates += 1
+            return
+        frame.trigger_index = k
+        pending.frames[track.name] = _Slot(frame, offset_ns)
+        if track.mode == HARDWARE or track.name == self.reference:
+            track.last_pulse = k if track.last_pulse is None else max(track.last_pulse, k)
+
+    def _camera_done_with(self, track: _Track, k: int, pending: Optional[_Pending]) -> bool:
+        if pending is not None and track.name in pending.frames:
+            return True
+        if not track.alive:
+            return True
+        if track.mode == HARDWARE or track.name == self.reference:
+            return track.last_pulse is not None and track.last_pulse > k
+        return self._timed_past(track, k)
+
+    def _emit_ready(self, now_ns: Optional[int], flush: bool, out: list) -> None:
+        if self._start_us is None or (self.clock is not None and not self.clock.ready):
+            return
+        while self._fired(self._next_emit):
+            k = self._next_emit
+            pending = self._sets.get(k)
+            for track in self.tracks.values():
+                if track.mode == TIMED and track.name != self.reference and (pending is None or track.name not in pending.frames):
+                    self._claim_timed(track, k)
+                    pending = self._sets.get(k)
+            waiting = [t for t in self.tracks.values() if not self._camera_done_with(t, k, pending)]
+            if waiting and not flush:
+                if now_ns is None or now_ns < self._pulse_host(k) + self.max_wait_ns:
+                    return
+            self._sets.pop(k, None)
+            out.append(self._make_set(k, pending))
+            self._next_emit = k + 1
+
+    def _make_set(self, k: int, pending: Optional[_Pending]) -> FrameSet:
+        frames: dict[str, Optional[Frame]] = {}
+        offsets = []
+        for name, track in self.tracks.items():
+            slot = pending.frames.get(name) if pending else None
+            if slot is None:
+                frames[name] = None
+                track.counters.drops += 1
+            else:
+                frames[name] = slot.frame
+                track.counters.grouped += 1
+                offsets.append(slot.offset_ns)
+        fs = FrameSet(index=self._base + k, frames=frames, host_ts_ns=self._pulse_host(k),
+                      trigger_index=k if self.clock is not None else None, train=self.epoch)
+        self.emitted += 1
+        if fs.complete:
+            self.complete += 1
+        if len(offsets) > 1:
+            self.skews_ns.append(max(offsets) - min(offsets))
+        return fs
