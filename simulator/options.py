@@ -31,11 +31,14 @@ CAMERA_OPTIONS: dict[str, tuple] = {
 }
 
 TRIGGER_OPTIONS: dict[str, tuple] = {
-    "clock_offset_us": (int, -(2**62), 2**62, 0, "board clock offset from host time"),
+    "clock_offset_us": (int, 0, 2**62, 0, "board clock reading at power-up (the board counts microseconds from there)"),
     "drift_ppm": (float, -10000.0, 10000.0, 0.0, "board clock drift"),
-    "reply_jitter_us": (float, 0.0, 1e6, 0.0, "random delay of the board's replies"),
+    "reply_jitter_us": (float, 0.0, 1e6, 0.0, "mean of the random (exponential) delay of every line the board sends"),
     "drop_pulse_rate": (float, 0.0, 1.0, 0.0, "probability that a pulse is not delivered to the cameras"),
-    "corrupt_rate": (float, 0.0, 1.0, 0.0, "probability that a line is corrupted"),
+    "corrupt_rate": (float, 0.0, 1.0, 0.0, "probability that a line (either direction) is corrupted"),
+    "delay_rate": (float, 0.0, 1.0, 0.0, "probability that a line the board sends is held back and overtaken"),
+    "delay_ms": (float, 0.0, 10000.0, 50.0, "how long a held-back line waits"),
+    "transport": (str, None, None, "pty", "pty | socket: how the host reaches the emulated board"),
     "seed": (int, 0, 2**31 - 1, 0, "random seed of the emulator"),
 }
 
@@ -45,6 +48,7 @@ _CHOICES = {
     ("scene", "motion"): ("walk", "wave", "dance", "jump", "mixed", "still"),
     ("scene", "board"): ("none", "charuco", "chessboard"),
     ("camera", "bayer"): ("", "RG", "GR", "GB", "BG"),
+    ("trigger", "transport"): ("pty", "socket"),
 }
 
 
