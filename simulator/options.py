@@ -11,6 +11,7 @@ from typing import Any
 # name: (type, min, max, default, help)
 SCENE_OPTIONS: dict[str, tuple] = {
     "seed": (int, 0, 2**31 - 1, 0, "random seed of the scene"),
+    "scene": (str, None, None, "studio", "studio (room with props) | empty (bare room)"),
     "people": (int, 0, 3, 2, "number of people in the scene"),
     "motion": (str, None, None, "mixed", "walk | wave | dance | jump | mixed | still"),
     "board": (str, None, None, "none", "none | charuco | chessboard: a board carried through the volume"),
@@ -45,6 +46,7 @@ TRIGGER_OPTIONS: dict[str, tuple] = {
 OPTIONS = {"scene": SCENE_OPTIONS, "camera": CAMERA_OPTIONS, "trigger": TRIGGER_OPTIONS}
 
 _CHOICES = {
+    ("scene", "scene"): ("studio", "empty"),
     ("scene", "motion"): ("walk", "wave", "dance", "jump", "mixed", "still"),
     ("scene", "board"): ("none", "charuco", "chessboard"),
     ("camera", "bayer"): ("", "RG", "GR", "GB", "BG"),
