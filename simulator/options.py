@@ -16,6 +16,7 @@ SCENE_OPTIONS: dict[str, tuple] = {
     "motion": (str, None, None, "mixed", "walk | wave | dance | jump | mixed | still"),
     "board": (str, None, None, "none", "none | charuco | chessboard: a board carried through the volume"),
     "loop_frames": (int, 0, 100000, 0, "pre-render this many frames per camera and replay them (0 = render live)"),
+    "loop_fps": (float, 0.1, 1000.0, 30.0, "frame rate of the pre-rendered loop (the loop lasts loop_frames / loop_fps s)"),
 }
 
 CAMERA_OPTIONS: dict[str, tuple] = {
@@ -27,8 +28,11 @@ CAMERA_OPTIONS: dict[str, tuple] = {
     "shot_noise": (float, 0.0, 100.0, 1.0, "shot-noise scale (1 = physical at full well)"),
     "read_noise": (float, 0.0, 100.0, 1.0, "read noise, in 8-bit digital numbers (std)"),
     "motion_blur": (bool, None, None, True, "integrate motion over the exposure time"),
+    "blur_samples": (int, 1, 16, 3, "renders averaged over the exposure when motion_blur is on"),
+    "full_well": (float, 100.0, 1e6, 10000.0, "electrons at full scale (gain 0 dB): sets the shot-noise level"),
     "bayer": (str, None, None, "", "deliver raw Bayer (RG, GR, GB, BG); empty = as pixel_format says"),
     "seed": (int, 0, 2**31 - 1, 0, "random seed of this sensor's noise, drops and jitter"),
+    "disconnect_after_s": (float, 0.0, 1e9, 0.0, "the camera vanishes this long after it starts (0 = never)"),
 }
 
 TRIGGER_OPTIONS: dict[str, tuple] = {

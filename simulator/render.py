@@ -17,6 +17,7 @@ How it stays fast in numpy:
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Optional
@@ -168,19 +169,22 @@ class CameraRays:
 
 
 _RAYS: OrderedDict = OrderedDict()
+_RAYS_LOCK = threading.Lock()
 
 
 def camera_rays(cam: CameraModel) -> CameraRays:
     """The cached rays of a camera (keyed by its intrinsics and size, not its pose)."""
     key = (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes())
-    rays = _RAYS.get(key)
-    if rays is None:
-        rays = CameraRays(cam)
+    with _RAYS_LOCK:
+        rays = _RAYS.get(key)
+        if rays is not None:
+            _RAYS.move_to_end(key)
+            return rays
+    rays = CameraRays(cam)
+    with _RAYS_LOCK:
         _RAYS[key] = rays
         while len(_RAYS) > 16:
             _RAYS.popitem(last=False)
-    else:
-        _RAYS.move_to_end(key)
     return rays
 
 
@@ -466,14 +470,16 @@ def _static_layer(scene, camera, shader, batches, boxes, rays, s, normals) -> _S
     key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), camera.R.tobytes(),
            camera.t.tobytes(), s, normals)
     cache = scene.static_layers
-    layer = cache.get(key)
-    if layer is None:
-        layer = _StaticLayer(shader, batches, boxes, rays, scene.static_count, s, normals)
+    with scene.lock:
+        layer = cache.get(key)
+        if layer is not None:
+            cache.move_to_end(key)
+            return layer
+    layer = _StaticLayer(shader, batches, boxes, rays, scene.static_count, s, normals)
+    with scene.lock:
         cache[key] = layer
-        while len(cache) > 8:
+        while len(cache) > 12:
             cache.popitem(last=False)
-    else:
-        cache.move_to_end(key)
     return layer
 
 

@@ -8,6 +8,7 @@ the +z side (see simulator.rig), so people face +z by default and the board turn
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from typing import Optional, Union
 
@@ -108,6 +109,7 @@ class Scene:
         self.ambient = 0.38
         self._cache: OrderedDict = OrderedDict()
         self.static_layers: OrderedDict = OrderedDict()  # the renderer's per-camera drawing of room and props
+        self.lock = threading.RLock()  # cameras may render from several threads
 
     @property
     def static_count(self) -> int:
@@ -235,10 +237,11 @@ class Scene:
     def primitives(self, t: float) -> list[Primitive]:
         """All primitives at time t; index 0 is the room."""
         t = check_time(t)
-        hit = self._cache.get(t)
-        if hit is not None:
-            self._cache.move_to_end(t)
-            return hit
+        with self.lock:
+            hit = self._cache.get(t)
+            if hit is not None:
+                self._cache.move_to_end(t)
+                return hit
         prims: list[Primitive] = [self.room, *self.props]
         if self.board is not None:
             R, tb = self.board_pose(t)
@@ -251,9 +254,10 @@ class Scene:
             prims.append(BoardFace("board_back", "board_back", False, R, tb, ext, False, ppm, margin_tex, (W, Hh)))
         for p in self.persons:
             prims.extend(person_primitives(p, t))
-        self._cache[t] = prims
-        while len(self._cache) > 8:
-            self._cache.popitem(last=False)
+        with self.lock:
+            self._cache[t] = prims
+            while len(self._cache) > 8:
+                self._cache.popitem(last=False)
         return prims
 
     def ground_positions(self, t: float) -> list[tuple[float, float]]:

@@ -1,0 +1,272 @@
+"""Virtual image sensors: exposure with motion blur, gain, shot and read noise, colour filter array,
+trigger latency with jitter, a drifting device clock and random frame drops.
+
+Brightness model: the renderer's radiance 1.0 fills the 8-bit range at the nominal exposure
+(NOMINAL_EXPOSURE_S) and gain 0 dB; the digital number scales with exposure time and gain (dB) and
+clips at 255. Noise: shot noise is Poisson in electrons (`full_well` electrons at full scale at
+gain 0 dB, so its variance in digital numbers grows with the signal and with the gain), read noise
+is Gaussian with `read_noise` DN of standard deviation; `shot_noise` scales the first.
+
+Two ways to get images:
+- live: each exposure renders the scene (several renders over the exposure when motion_blur);
+- loop (`loop_frames` > 0): the first use renders that many frames once, at `loop_fps`, with their
+  motion blur; later exposures replay frame round(t * loop_fps) mod loop_frames with fresh noise,
+  fast enough for real-time tests of the capture path (the renderer is not).
+
+Every random draw comes from the generator the caller passes, or from `frame_rng(index)`, so a
+capture is a pure function of (scene seed, sensor seed, camera, frame index).
+"""
+from __future__ import annotations
+
+import math
+import threading
+import zlib
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import cv2
+import numpy as np
+
+from calibration.camera import CameraModel
+from simulator.errors import SimulatorError
+from simulator.options import validate_options
+from simulator.render import render
+
+NOMINAL_EXPOSURE_S = 0.005  # exposure at which radiance 1.0 is full scale (gain 0 dB)
+LOOP_SCALE = 200.0  # stored loop frames: uint8 = radiance * LOOP_SCALE (headroom for highlights)
+
+ImageSource = Callable[[float, float, np.random.Generator], np.ndarray]
+
+# OpenCV names a Bayer pattern by the 2x2 block at (1, 1); the options use the block at (0, 0).
+_DEMOSAIC = {"RG": cv2.COLOR_BayerBG2RGB, "BG": cv2.COLOR_BayerRG2RGB, "GR": cv2.COLOR_BayerGB2RGB, "GB": cv2.COLOR_BayerGR2RGB}
+
+
+def bayer_mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
+    """One colour per pixel through a colour filter array; `pattern` names the top-left 2x2 row."""
+    ch = {"R": 0, "G": 1, "B": 2}
+    top = pattern
+    bottom = {"RG": "GB", "BG": "GR", "GR": "BG", "GB": "RG"}[pattern]
+    out = np.empty(rgb.shape[:2], dtype=rgb.dtype)
+    out[0::2, 0::2] = rgb[0::2, 0::2, ch[top[0]]]
+    out[0::2, 1::2] = rgb[0::2, 1::2, ch[top[1]]]
+    out[1::2, 0::2] = rgb[1::2, 0::2, ch[bottom[0]]]
+    out[1::2, 1::2] = rgb[1::2, 1::2, ch[bottom[1]]]
+    return out
+
+
+def demosaic(raw: np.ndarray, pattern: str) -> np.ndarray:
+    return cv2.cvtColor(raw, _DEMOSAIC[pattern])
+
+
+@dataclass
+class Capture:
+    """One triggered exposure: when it really started, what the device clock said, the image
+    (None when the frame was dropped)."""
+
+    frame_index: int
+    trigger_s: float
+    exposure_start_s: float
+    exposure_s: float
+    device_ts_ns: int
+    image: Optional[np.ndarray]
+
+    @property
+    def dropped(self) -> bool:
+        return self.image is None
+
+
+class SensorModel:
+    """The sensor of one simulated camera looking at `scene` through `camera` (ground truth).
+
+    options: a camera's `sim = {...}` table (simulator.options.CAMERA_OPTIONS).
+    """
+
+    def __init__(self, scene, camera: CameraModel, options: Optional[dict] = None, *, gain_db: float = 0.0,
+                 loop_frames: int = 0, loop_fps: float = 30.0, antialias: Optional[int] = None):
+        try:
+            self.opts = validate_options(dict(options or {}), "camera")
+        except ValueError as exc:
+            raise SimulatorError(f"camera {camera.name}: sim.{exc}") from None
+        if not math.isfinite(gain_db) or not -20.0 <= gain_db <= 48.0:
+            raise SimulatorError(f"camera {camera.name}: gain must be between -20 and 48 dB, got {gain_db}")
+        if loop_frames < 0 or (loop_frames > 0 and not loop_fps > 0):
+            raise SimulatorError(f"camera {camera.name}: loop_frames must be >= 0 and loop_fps positive")
+        self.scene = scene
+        self.camera = camera
+        self.gain = 10.0 ** (gain_db / 20.0)
+        self.loop_frames = int(loop_frames)
+        self.loop_fps = float(loop_fps)
+        self.antialias = antialias
+        self._seed = (int(self.opts["seed"]) * 1_000_003 + zlib.crc32(camera.name.encode())) & 0x7FFFFFFF
+        self._loop: Optional[np.ndarray] = None
+        self._loop_exposure_s: Optional[float] = None
+        self._noise_bank: Optional[np.ndarray] = None
+        self._lock = threading.Lock()
+
+    # ---- randomness -------------------------------------------------------------------------
+    def frame_rng(self, frame_index: int) -> np.random.Generator:
+        """The generator of one frame's random draws (noise, jitter, drop)."""
+        return np.random.default_rng([self._seed, int(frame_index) & 0xFFFFFFFFFFFF])
+
+    # ---- timing -----------------------------------------------------------------------------
+    def exposure_start(self, trigger_s: float, rng: np.random.Generator) -> float:
+        """Start of the exposure a trigger at `trigger_s` causes: latency plus |Gaussian jitter|."""
+        latency = self.opts["latency_us"] * 1e-6
+        if self.opts["jitter_us"] > 0:
+            latency += abs(rng.normal(0.0, self.opts["jitter_us"] * 1e-6))
+        return trigger_s + latency
+
+    def device_time_ns(self, t_s: float) -> int:
+        """The camera's clock at simulated time t_s: offset plus drift (ppm)."""
+        return int(round(t_s * 1e9 * (1.0 + self.opts["drift_ppm"] * 1e-6))) + int(self.opts["clock_offset_ns"])
+
+    def dropped(self, rng: np.random.Generator) -> bool:
+        return self.opts["drop_rate"] > 0 and rng.random() < self.opts["drop_rate"]
+
+    # ---- images -----------------------------------------------------------------------------
+    def radiance(self, t_start_s: float, exposure_s: float) -> np.ndarray:
+        """Linear image integrated over the exposure (float32 HxWx3, 1.0 = full scale nominally)."""
+        if t_start_s < 0:
+            raise SimulatorError(f"time must be >= 0, got {t_start_s}")
+        if not exposure_s > 0:
+            raise SimulatorError(f"exposure must be positive, got {exposure_s}")
+        n = int(self.opts["blur_samples"]) if self.opts["motion_blur"] else 1
+        acc = None
+        for i in range(n):  # stratified instants over [t, t + exposure]
+            r = render(self.scene, self.camera, t_start_s + (i + 0.5) / n * exposure_s, antialias=self.antialias)
+            acc = r.radiance.copy() if acc is None else acc + r.radiance
+        return acc if n == 1 else acc * (1.0 / n)
+
+    def digitise(self, radiance: np.ndarray, exposure_s: float, rng: np.random.Generator, raw: bool = False,
+                 fast_noise: bool = False) -> np.ndarray:
+        """Exposure, gain, noise and quantisation of a radiance image: RGB uint8 (or the Bayer
+        mosaic when `raw` and the sensor has a colour filter array)."""
+        k = exposure_s / NOMINAL_EXPOSURE_S * self.gain * 255.0
+        dn = radiance * np.float32(k)
+        # variance in DN: shot noise (electrons = dn / gain * full_well / 255) and read noise
+        dn_per_electron = 255.0 * self.gain / self.opts["full_well"]
+        var = np.maximum(dn, 0.0) * np.float32(self.opts["shot_noise"] ** 2 * dn_per_electron) + np.float32(self.opts["read_noise"] ** 2)
+        noise = self._noise(dn.shape, rng) if fast_noise else rng.standard_normal(dn.shape, dtype=np.float32)
+        dn += np.sqrt(var) * noise
+        img = np.clip(dn + 0.5, 0.0, 255.0).astype(np.uint8)
+        pattern = self.opts["bayer"]
+        if pattern:
+            mosaic = bayer_mosaic(img, pattern)
+            return mosaic if raw else demosaic(mosaic, pattern)
+        return img
+
+    def _noise(self, shape, rng):
+        """Standard normal noise for the loop: a window at a random offset into a bank drawn once."""
+        n = int(np.prod(shape))
+        with self._lock:
+            if self._noise_bank is None or self._noise_bank.size < 2 * n:
+                self._noise_bank = np.random.default_rng([self._seed, 1 << 40]).standard_normal(2 * n, dtype=np.float32)
+        off = int(rng.integers(0, self._noise_bank.size - n))
+        return self._noise_bank[off:off + n].reshape(shape)
+
+    def expose(self, t_start_s: float, exposure_s: float, rng: np.random.Generator, raw: bool = False) -> np.ndarray:
+        """The image of an exposure starting at simulated time t_start_s (RGB uint8 HxWx3)."""
+        if self.loop_frames > 0:
+            return self.digitise(self._loop_radiance(t_start_s + exposure_s / 2, exposure_s), exposure_s, rng, raw, fast_noise=True)
+        return self.digitise(self.radiance(t_start_s, exposure_s), exposure_s, rng, raw)
+
+    def image_source(self) -> ImageSource:
+        """A callable (t, exposure_s, rng) -> RGB uint8, the image source of the sim:// backend."""
+        return lambda t, exposure_s, rng: self.expose(max(0.0, t), exposure_s, rng)
+
+    def capture(self, trigger_s: float, exposure_s: float, frame_index: int) -> Capture:
+        """Everything one trigger produces, deterministic for (sensor seed, frame_index)."""
+        rng = self.frame_rng(frame_index)
+        start = self.exposure_start(trigger_s, rng)
+        ts = self.device_time_ns(start)
+        image = None if self.dropped(rng) else self.expose(start, exposure_s, rng)
+        return Capture(frame_index, trigger_s, start, exposure_s, ts, image)
+
+    # ---- pre-rendered loop ------------------------------------------------------------------
+    def prerender(self, exposure_s: float = NOMINAL_EXPOSURE_S) -> None:
+        """Render the loop now (otherwise the first exposure does it)."""
+        with self._lock:
+            if self._loop is not None:
+                return
+            H, W = self.camera.height, self.camera.width
+            frames = np.empty((self.loop_frames, H, W, 3), np.uint8)
+            for i in range(self.loop_frames):
+                rad = self.radiance(i / self.loop_fps, exposure_s)
+                frames[i] = np.clip(rad * LOOP_SCALE + 0.5, 0, 255).astype(np.uint8)
+            self._loop, self._loop_exposure_s = frames, exposure_s
+
+    def _loop_radiance(self, t_mid_s: float, exposure_s: float) -> np.ndarray:
+        if self._loop is None:
+            self.prerender(exposure_s)
+        i = int(round(t_mid_s * self.loop_fps)) % self.loop_frames
+        return self._loop[i].astype(np.float32) * np.float32(1.0 / LOOP_SCALE)
+
+
+class SimRig:
+    """A simulated rig from a rig configuration: one shared scene, the ground-truth calibration of
+    its sim:// cameras, and a sensor per camera.
+
+    `config` is anything shaped like rig.config.RigConfig (`sim` table, `cameras` with name, uri,
+    role, width, height, gain, sim). Cameras stand on the virtual rig's arc in the order left, the
+    others as listed, right.
+    """
+
+    def __init__(self, config, antialias: Optional[int] = None):
+        from simulator.rig import arc_rig
+        from simulator.scene import Scene
+
+        self.options = validate_scene_options(getattr(config, "sim", {}) or {})
+        cams = [c for c in config.cameras if str(c.uri).startswith("sim://")]
+        if not cams:
+            raise SimulatorError("the configuration has no sim:// cameras")
+        order = {"left": 0, "right": 2}
+        cams = sorted(cams, key=lambda c: order.get(getattr(c, "role", ""), 1))  # stable: others keep their order
+        self.cameras = cams
+        self.scene = Scene.from_options(self.options)
+        self.calibration = arc_rig([(c.name, c.width, c.height) for c in cams], seed=self.options["seed"])
+        self._sensors: dict[str, SensorModel] = {}
+        self._antialias = antialias
+
+    def sensor(self, name: str) -> SensorModel:
+        if name not in self._sensors:
+            cfg = next((c for c in self.cameras if c.name == name), None)
+            if cfg is None:
+                raise SimulatorError(f"no sim camera named {name!r} (have: {', '.join(c.name for c in self.cameras)})")
+            self._sensors[name] = SensorModel(
+                self.scene, self.calibration[name], getattr(cfg, "sim", None) or {},
+                gain_db=float(getattr(cfg, "gain", None) or 0.0),
+                loop_frames=self.options["loop_frames"], loop_fps=self.options["loop_fps"], antialias=self._antialias)
+        return self._sensors[name]
+
+
+def validate_scene_options(table: dict) -> dict:
+    try:
+        return validate_options(dict(table), "scene")
+    except ValueError as exc:
+        raise SimulatorError(f"sim.{exc}") from None
+
+
+_RIGS: dict = {}
+_RIGS_LOCK = threading.Lock()
+
+
+def sim_rig(config) -> SimRig:
+    """The SimRig of a configuration, shared by all its cameras (one scene, one set of textures)."""
+    import json
+
+    key = json.dumps({"sim": getattr(config, "sim", {}) or {},
+                      "cameras": [(c.name, c.uri, getattr(c, "role", ""), c.width, c.height, getattr(c, "gain", None), getattr(c, "sim", None))
+                                  for c in config.cameras]}, sort_keys=True, default=str)
+    with _RIGS_LOCK:
+        rig = _RIGS.get(key)
+        if rig is None:
+            rig = SimRig(config)
+            _RIGS[key] = rig
+            while len(_RIGS) > 4:
+                _RIGS.pop(next(iter(_RIGS)))
+        return rig
+
+
+def camera_source(config, camera_name: str) -> ImageSource:
+    """The image source for the sim:// backend: `source(t, exposure_s, rng) -> RGB uint8`."""
+    return sim_rig(config).sensor(camera_name).image_source()
