@@ -4,13 +4,12 @@ from __future__ import annotations
 from typing import Any
 
 
-def camera_names(n_cameras: int) -> list[str]:
-    """Arc order: left, the supervision cameras, right (the simulator's virtual rig uses the same)."""
-    return ["left"] + [f"sup{i}" for i in range(1, n_cameras - 1)] + ["right"]
+from simulator.rig import camera_names
 
 
 def sim_rig_config(n_cameras: int = 2, width: int = 640, height: int = 360, fps: float = 30.0,
-                   trigger: str = "software", pixel_format: str = "RGB8") -> dict[str, Any]:
+                   trigger: str = "hardware", pixel_format: str = "RGB8") -> dict[str, Any]:
+    """A simulated rig: cameras named as the virtual rig names them, fired by the emulated trigger board."""
     cameras = []
     for i, name in enumerate(camera_names(n_cameras)):
         role = name if name in ("left", "right") else "supervision"
@@ -27,4 +26,7 @@ def sim_rig_config(n_cameras: int = 2, width: int = 640, height: int = 360, fps:
             "gain": 0.0,
             "sim": {"seed": i},
         })
-    return {"rig": {"name": f"sim-{n_cameras}cam", "storage": "recordings"}, "sim": {"seed": 0, "people": 2}, "cameras": cameras}
+    cfg = {"rig": {"name": f"sim-{n_cameras}cam", "storage": "recordings"}, "sim": {"seed": 0, "people": 2}, "cameras": cameras}
+    if trigger == "hardware":
+        cfg["trigger"] = {"uri": "sim://trigger", "rate_hz": fps, "pulse_width_us": 100.0}
+    return cfg

@@ -171,6 +171,11 @@ class SimCamera(Camera):
         return self._start_ns + int(round(k * 1e9 / self.settings.fps))
 
     def _run(self) -> None:
+        vanish = self.opts["disconnect_after_s"]
+        if vanish > 0:
+            timer = threading.Timer(vanish, self.unplug)
+            timer.daemon = True
+            timer.start()
         free = self.settings.trigger == "free"
         tick = itertools.count()
         next_tick = self._next_free_run(next(tick)) if free else None

@@ -1,0 +1,104 @@
+"""`rig record` on the simulated rig: sync, crash safety, a full disk, a camera vanishing."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+
+import pytest
+
+from rig.config import dump_config, parse_config
+from rig.sequence import INDEX, repair, validate
+from rig.simrig import sim_rig_config
+from tests.rig.cli_helpers import REPO, run_rig
+
+
+def rig_file(tmp_path, width=160, height=90, **camera_sim):
+    data = sim_rig_config(n_cameras=2, width=width, height=height, fps=30.0)
+    for cam in data["cameras"]:
+        cam["sim"].update(camera_sim.get(cam["name"], {}))
+    path = tmp_path / "rig.toml"
+    path.write_text(dump_config(parse_config(data)))
+    return path
+
+
+def rows(seq):
+    return [json.loads(line) for line in (seq / INDEX).read_text().splitlines() if line.endswith("}")]
+
+
+def test_record_sets_in_sync_without_losing_frames(tmp_path):
+    seq = tmp_path / "seq"
+    proc = run_rig("record", "-c", rig_file(tmp_path), "-o", seq, "--sets", 45, "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["sets"] == 45 and out["complete_sets"] == 45
+    assert out["frames_lost"] == {"left": 0, "right": 0}
+    assert out["frames"] == {"left": 45, "right": 45} and out["mb_per_s"] > 0
+    v = json.loads(run_rig("record", "validate", seq, "--json").stdout)
+    assert v["readable"] and v["errors"] == [] and v["sets"] == 45 and v["gaps"] == 0
+    triggers = [r["trigger"] for r in rows(seq)]
+    assert triggers == sorted(triggers) and len(set(triggers)) == 45
+    assert (seq / "rig.toml").exists() and tomllib.loads((seq / "rig.toml").read_text())["rig"]["name"] == "sim-2cam"
+
+
+def test_kill_9_loses_at_most_a_second_and_repair_makes_it_clean(tmp_path):
+    seq = tmp_path / "seq"
+    proc = subprocess.Popen([sys.executable, "-m", "rig", "record", "-c", str(rig_file(tmp_path, 320, 180)), "-o", str(seq),
+                             "--seconds", "60"], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 40
+    while not ((seq / INDEX).exists() and len(rows(seq)) >= 40):
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.05)
+    killed_ns = time.monotonic_ns()
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    v = validate(seq, check_pixels=True)
+    assert v.readable, v.errors
+    last_ts = max(r["host_ts_ns"] for r in rows(seq)[-1:] for r in r["frames"].values() if r)
+    assert killed_ns - last_ts < 1e9  # at most one second of the take is lost
+    repair(seq)
+    again = validate(seq, check_pixels=True)
+    assert again.readable and not again.torn_tail and again.sets == v.sets
+
+
+@pytest.fixture
+def small_filesystem(tmp_path):
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(mnt)], capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)])
+
+
+def test_full_disk_stops_cleanly_and_keeps_a_valid_sequence(tmp_path, small_filesystem):
+    seq = small_filesystem / "seq"
+    proc = run_rig("record", "-c", rig_file(tmp_path, 640, 360), "-o", seq, "--seconds", 20, "--json")
+    assert proc.returncode == 1
+    err = proc.stderr.strip().splitlines()
+    assert len(err) == 1 and "disk full" in err[0] and "Traceback" not in proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["stopped_by"] == "storage" and out["sets"] > 0
+    v = validate(seq, check_pixels=True)
+    assert v.readable and v.sets == out["sets"], v.errors
+
+
+def test_camera_vanishing_marks_its_frames_missing_while_others_go_on(tmp_path):
+    seq = tmp_path / "seq"
+    proc = run_rig("record", "-c", rig_file(tmp_path, right={"disconnect_after_s": 4.0}), "-o", seq, "--seconds", 3, "--json")
+    assert proc.returncode == 1 and "right" in proc.stderr and "disconnected" in proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["frames_lost"] == {"left": 0, "right": 0}
+    index = rows(seq)
+    right = [r["frames"]["right"] for r in index]
+    assert right[0] is not None and right[-1] is None  # there, then gone
+    assert all(r["frames"]["left"] is not None for r in index)  # the left camera went on
+    assert out["frames"]["left"] > out["frames"]["right"] > 0
+    v = validate(seq)
+    assert v.readable and v.missing["right"] > 0
