@@ -182,7 +182,9 @@ class ClockModel:
         lo = (arr[:, 1] - host_ref).astype(np.float64)  # ns
         hi = (arr[:, 2] - host_ref).astype(np.float64)
         keep_n = max(self.min_samples, int(np.ceil(len(x) * self.keep_fraction)))
-        fast = np.argsort(hi - lo, kind="stable")[:keep_n]  # the slope's samples: the fastest round trips
+        rtt = hi - lo
+        limit = np.partition(rtt, keep_n - 1)[keep_n - 1] if keep_n < len(rtt) else np.inf
+        fast = np.flatnonzero(rtt <= limit)  # the slope's samples: the fastest round trips (ties kept)
         span = int(np.ptp(x))
         fit_slope = np.ptp(x[fast]) >= self.min_slope_span_us and len(fast) >= 3
         offset, slope, margin = band_fit(x, lo, hi, fit_slope, slope_from=fast)

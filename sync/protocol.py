@@ -54,7 +54,7 @@ REJECTIONS = ("length", "checksum", "syntax", "unknown", "args")
 
 _WORD = re.compile(r"[A-Za-z0-9._-]{1,%d}" % MAX_WORD)
 _KIND = re.compile(r"[A-Z]{1,16}")
-_HEX_DIGITS = frozenset(b"0123456789ABCDEFabcdef")
+_HEX_DIGITS = frozenset(b"0123456789ABCDEF")  # upper case only: a flipped bit 5 must not pass
 _UINT = re.compile(r"0|[1-9][0-9]{0,19}")
 
 Arg = Union[int, str]

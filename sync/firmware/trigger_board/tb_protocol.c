@@ -39,8 +39,7 @@ uint16_t tb_crc16(const char *data, size_t len) {
 static int hex_value(char c) {
     if (c >= '0' && c <= '9') return c - '0';
     if (c >= 'A' && c <= 'F') return c - 'A' + 10;
-    if (c >= 'a' && c <= 'f') return c - 'a' + 10;
-    return -1;
+    return -1; /* upper case only: with 'a'-'f' too, a flipped bit 5 in the checksum would pass */
 }
 
 static int is_word_char(char c) {

@@ -1,0 +1,140 @@
+"""A sim rig run with its emulated trigger board, measured against the simulator's truth."""
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from rig.config import parse_config
+from rig.session import RigSession
+from rig.sync_check import sync_check
+
+
+def sim_rig(trigger_sim=None, cameras=None, rate_hz=30.0, trigger=True) -> dict:
+    cams = cameras or [
+        {"name": "left", "uri": "sim://left", "role": "left", "trigger": "hardware",
+         "sim": {"drop_rate": 0.02, "jitter_us": 50.0, "drift_ppm": 100.0, "clock_offset_ns": 4_000_000_000_000, "seed": 11}},
+        {"name": "right", "uri": "sim://right", "role": "right", "trigger": "hardware",
+         "sim": {"drop_rate": 0.02, "jitter_us": 50.0, "drift_ppm": -100.0, "clock_offset_ns": 17, "seed": 12}},
+    ]
+    for c in cams:
+        c.setdefault("width", 64)
+        c.setdefault("height", 48)
+        c.setdefault("exposure_us", 5000.0)
+        c.setdefault("fps", rate_hz)
+    data = {"rig": {"name": "sync-test"}, "cameras": cams}
+    if trigger:
+        data["trigger"] = {"uri": "sim://trigger", "rate_hz": rate_hz, "sim": dict(trigger_sim or {"drift_ppm": 100.0, "seed": 3})}
+    return data
+
+
+def assert_truth(report: dict) -> None:
+    truth = report["truth"]
+    assert report["mismatched_sets"] == 0 and truth["misassigned_frames"] == 0
+    for name, n in report["frames"].items():
+        assert report["cameras"][name]["grouped"] == n, "every delivered frame is in a set"
+        assert truth["undetected_drops"][name] == 0 and truth["false_drops"][name] == 0
+        assert report["drops_detected"][name] == truth["drops_injected"][name]
+
+
+@pytest.mark.slow
+def test_sixty_seconds_at_30_hz_with_drops_jitter_and_drift():
+    """Acceptance: 2% frame drops, 50 us trigger-latency jitter, 100 ppm drift, 60 s at 30 Hz."""
+    cfg = parse_config(sim_rig({"drift_ppm": 100.0, "reply_jitter_us": 200.0, "seed": 3}))
+    report = sync_check(cfg, 60.0)
+    print("\nsync check, 60 s:", json.dumps({k: report[k] for k in ("pulses", "frames", "complete_sets", "mismatched_sets", "drops_detected", "skew_us", "clock_residual_us", "drift_ppm")}))
+    print("truth:", json.dumps(report["truth"]))
+    assert report["pulses"] == 1800 and report["sets"] == 1800
+    assert_truth(report)
+    assert 10 < sum(report["truth"]["drops_injected"].values()) < 150  # 2% of 3600 frames, give or take
+    assert report["skew_us"]["p99"] < 500  # 50 us jitter per camera, not a frame period
+    assert abs(report["drift_ppm"] - 100.0) < 5.0
+    assert report["clock_residual_us"] < 200.0  # measured figure is printed; the model's own bound is in test_sync_clock
+
+
+def test_a_noisy_link_and_dropped_pulses_never_pair_frames_wrongly():
+    trigger = {"drift_ppm": -200.0, "reply_jitter_us": 100.0, "corrupt_rate": 0.03, "delay_rate": 0.03, "delay_ms": 40.0,
+               "drop_pulse_rate": 0.05, "seed": 8}
+    cfg = parse_config(sim_rig(trigger))
+    report = sync_check(cfg, 4.0)
+    assert_truth(report)
+    link = report["board"]
+    assert link["corrupt_lines"] > 0 and link["out_of_order_lines"] > 0
+    dropped = 0
+    for name in report["frames"]:
+        assert report["cameras"][name]["missed_triggers"] > 0  # pulses the board never delivered
+        dropped = max(dropped, report["cameras"][name]["missed_triggers"])
+    assert dropped > 0
+
+
+def test_unplugging_the_board_mid_run_keeps_the_sets_and_resumes_on_return():
+    cfg = parse_config(sim_rig({"seed": 4}))
+    with RigSession(cfg, warm_up_s=1.0) as session:
+        session.start()
+        first = []
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            fs = session.next_set(timeout=0.1)
+            if fs is not None:
+                first.append(fs)
+        session.emulator.unplug()
+        t_unplug = time.monotonic()
+        while not any(e.kind == "board_disconnected" for e in session.events):
+            assert time.monotonic() - t_unplug < 3, "the unplug was not reported"
+            time.sleep(0.02)
+        assert "disconnected" in session.errors()[0]
+        # sets of pulses fired before the unplug still come out; then nothing new
+        while True:
+            fs = session.next_set(timeout=1.0)
+            if fs is None:
+                break
+            first.append(fs)
+        assert len(first) > 20 and [s.index for s in first] == list(range(len(first)))
+        session.emulator.replug()
+        second = []
+        deadline = time.monotonic() + 8
+        while len(second) < 30 and time.monotonic() < deadline:
+            fs = session.next_set(timeout=0.2)
+            if fs is not None:
+                second.append(fs)
+        assert any(e.kind == "resumed" for e in session.events)
+        assert len(second) == 30 and all(s.train == 1 for s in second)
+        assert second[0].index == first[-1].index + 1 and second[0].trigger_index == 0
+        session.stop()
+        for fs in first + second:
+            for f in fs:
+                assert session.cameras[f.camera].truth_pulse[f.frame_id] == fs.trigger_index
+
+
+def test_software_and_free_running_cameras_join_the_triggered_sets():
+    cams = [
+        {"name": "left", "uri": "sim://left", "role": "left", "trigger": "hardware", "sim": {"seed": 1}},
+        {"name": "soft", "uri": "sim://soft", "trigger": "software", "sim": {"seed": 2}},
+        {"name": "free", "uri": "sim://free", "trigger": "free", "sim": {"seed": 3}},
+    ]
+    cfg = parse_config(sim_rig({"seed": 5}, cameras=cams, rate_hz=20.0))
+    with RigSession(cfg, warm_up_s=1.0) as session:
+        sets = list(session.framesets(seconds=3.0))
+        stats = session.camera_stats()
+    assert len(sets) >= 50
+    middle = sets[3:-3]
+    assert all(s["left"] is not None for s in middle)
+    assert sum(s["soft"] is not None for s in middle) >= 0.9 * len(middle)
+    assert sum(s["free"] is not None for s in middle) >= 0.9 * len(middle)
+    for name in ("soft", "free"):
+        ids = [s[name].frame_id for s in sets if s[name] is not None]
+        assert len(ids) == len(set(ids)) and ids == sorted(ids)
+        assert stats[name]["grouped"] == len(ids)
+    for s in sets:
+        if s["left"] is not None:
+            assert session.cameras["left"].truth_pulse[s["left"].frame_id] == s.trigger_index
+
+
+def test_a_rig_without_a_trigger_board_groups_by_the_left_camera():
+    cams = [{"name": n, "uri": f"sim://{n}", "role": n, "trigger": "free", "sim": {"seed": i}} for i, n in enumerate(["left", "right"])]
+    cfg = parse_config(sim_rig(cameras=cams, trigger=False, rate_hz=25.0))
+    report = sync_check(cfg, 2.0)
+    assert report["clock_residual_us"] is None and report["mismatched_sets"] is None
+    assert report["sets"] >= 40 and report["complete_sets"] >= report["sets"] - 3
+    assert report["skew_us"]["max"] <= 20_000  # half a period at 25 Hz
