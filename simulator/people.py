@@ -106,7 +106,7 @@ def motion_pose(p: PersonSpec, t: float) -> tuple[tuple[float, float], float, fl
             "upper_arm_l": (-0.35 * s, 0.08), "forearm_l": (-0.35 * s + 0.35 + 0.15 * max(0.0, -s), 0.06),
             "upper_arm_r": (0.35 * s, 0.08), "forearm_r": (0.35 * s + 0.35 + 0.15 * max(0.0, s), 0.06),
         }
-        lift = 0.025 * math.cos(2 * g)
+        lift = 0.0125 * (1.0 + math.cos(2 * g))  # the body rises over the supporting leg
         lean = 0.05
         sway = 0.03 * s
         head = 0.25 * math.sin(2 * math.pi * 0.13 * tt)
@@ -174,6 +174,7 @@ def person_primitives(p: PersonSpec, t: float) -> list[Primitive]:
     thigh, shin = 0.245 * H, 0.245 * H
     ankle_h = 0.045 * H
     hip_w = 0.052 * H * g
+    hip_drop = 0.02 * H  # hip joints sit this far below the pelvis centre
 
     # Place the pelvis so that the lower ankle stands on the floor (plus the jump's lift).
     drops = []
@@ -181,7 +182,7 @@ def person_primitives(p: PersonSpec, t: float) -> list[Primitive]:
         d1 = _limb_dir(*limbs[f"thigh_{s}"], 1.0)
         d2 = _limb_dir(*limbs[f"shin_{s}"], 1.0)
         drops.append(-(thigh * d1[1] + shin * d2[1]))
-    pelvis = np.array([x, max(drops) + ankle_h + lift, z])
+    pelvis = np.array([x, max(drops) + hip_drop + ankle_h + lift, z])
 
     m = p.materials
     prims: list[Primitive] = []
@@ -222,7 +223,7 @@ def person_primitives(p: PersonSpec, t: float) -> list[Primitive]:
 
     # legs
     for s, side in (("l", 1.0), ("r", -1.0)):
-        hip = pelvis + Rb @ np.array([side * hip_w, -0.02 * H, 0.0])
+        hip = pelvis + Rb @ np.array([side * hip_w, -hip_drop, 0.0])
         d1 = Rb @ _limb_dir(*limbs[f"thigh_{s}"], side)
         knee = hip + thigh * d1
         d2 = Rb @ _limb_dir(*limbs[f"shin_{s}"], side)

@@ -34,7 +34,8 @@ PATTERNS = ("stripes", "checks", "plaid", "dots", "plain")
 def default_board(kind: str) -> BoardSpec:
     """The boards a sim config names by `board = "charuco" | "chessboard"`."""
     if kind == "charuco":
-        return CharucoSpec(squares_x=7, squares_y=5, square_size=0.08, marker_size=0.06, dictionary="DICT_5X5_100")
+        # 0.8 x 0.6 m with 4x4-bit markers: every marker bit spans ~4 px at 3.5 m in a 1280x720 view
+        return CharucoSpec(squares_x=8, squares_y=6, square_size=0.1, marker_size=0.075, dictionary="DICT_4X4_50")
     if kind == "chessboard":
         return ChessboardSpec(cols=9, rows=6, square_size=0.06)
     raise SimulatorError(f"unknown board {kind!r} (allowed: {', '.join(BOARD_NAMES)})")
