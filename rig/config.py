@@ -29,6 +29,7 @@ class CameraConfig:
     exposure_us: Optional[float] = None
     gain: Optional[float] = None
     sim: dict[str, Any] = field(default_factory=dict)  # sensor-model options of sim:// cameras
+    rig = None  # the RigConfig this camera belongs to (set when the config is parsed)
 
     @property
     def scheme(self) -> str:
@@ -221,7 +222,7 @@ def parse_config(data: dict, path: Optional[Path] = None) -> RigConfig:
     sim = data.get("sim", {})
     if sim:
         _check_sim_options("sim", sim, "scene")
-    return RigConfig(
+    cfg = RigConfig(
         name=rig.get("name", "rig"),
         cameras=cameras,
         trigger=trigger,
@@ -231,6 +232,9 @@ def parse_config(data: dict, path: Optional[Path] = None) -> RigConfig:
         sim=dict(sim),
         path=path,
     )
+    for c in cameras:
+        c.rig = cfg  # backends that need the whole rig (the sim:// scene) find it here; not a dataclass field
+    return cfg
 
 
 def _check_sim_options(where: str, table: dict, kind: str) -> None:

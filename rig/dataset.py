@@ -4,7 +4,7 @@
     for sample in seq.samples(cameras=["left", "right", "sup2"], size=(512, 288)):
         sample.images["left"]      # HxWx3 uint8 RGB at the chosen size
         sample.cameras["left"]     # CameraModel with intrinsics scaled to that size
-        sample.depth["sup2"]       # float32 metres (simulator sequences only; None otherwise)
+        sample.depth["sup2"]       # float32 metres, rendered from the scene (simulator takes only; None otherwise)
 
 Only sets in which every chosen camera has a frame are yielded. Images are resized with area
 interpolation when shrinking; the intrinsics follow the pixel-centre convention of
@@ -22,7 +22,6 @@ import numpy as np
 from calibration.camera import CameraModel, RigCalibration
 from rig.sequence import SequenceError, SequenceMeta, read_netpbm, scan_index
 
-GROUND_TRUTH = "ground_truth"  # simulator sequences: GROUND_TRUTH/CAM/NNNNNNNN.depth.npy beside each frame id
 
 
 @dataclass
@@ -42,6 +41,10 @@ class Sequence:
         self.rows = scan_index(self.root).rows
         cal = self.root / "calibration.json"
         self.calibration: Optional[RigCalibration] = RigCalibration.load(cal) if cal.exists() else None
+        sim = self.meta.extra.get("simulator")
+        # simulator takes: the exact cameras and the scene, to render ground-truth depth on demand
+        self.ground_truth: Optional[RigCalibration] = RigCalibration.from_dict({"version": 1, "cameras": sim["cameras"]}) if sim else None
+        self._scene = None
 
     @property
     def camera_names(self) -> list[str]:
@@ -51,6 +54,8 @@ class Sequence:
         return len(self.rows)
 
     def camera_model(self, name: str) -> CameraModel:
+        if self.calibration is None and self.ground_truth is not None:
+            return self.ground_truth[name]  # an uncalibrated simulator take: its exact cameras
         if self.calibration is None:
             raise SequenceError(f"{self.root}: no calibration.json; calibrate the rig (`rig calibrate run`) before training")
         if name not in self.calibration:
@@ -58,7 +63,7 @@ class Sequence:
         return self.calibration[name]
 
     def has_ground_truth(self) -> bool:
-        return (self.root / GROUND_TRUTH).is_dir()
+        return self.ground_truth is not None
 
     def samples(self, cameras: Optional[Seq[str]] = None, size: Optional[tuple[int, int]] = None,
                 with_depth: bool = True) -> Iterator[Sample]:
@@ -84,17 +89,22 @@ class Sequence:
                     img = _resize(img, size)
                 images[n] = img
                 ts[n] = rec["host_ts_ns"]
-                depth[n] = self._depth(n, rec["frame_id"], size) if with_depth else None
+                depth[n] = self.depth(n, rec.get("sim_time_s"), size) if with_depth else None
             yield Sample(row["set"], row.get("trigger"), images, models, depth, ts)
 
-    def _depth(self, cam: str, frame_id: int, size: Optional[tuple[int, int]]) -> Optional[np.ndarray]:
-        path = self.root / GROUND_TRUTH / cam / f"{frame_id:08d}.depth.npy"
-        if not path.exists():
+    def depth(self, cam: str, sim_time_s: Optional[float], size: Optional[tuple[int, int]] = None) -> Optional[np.ndarray]:
+        """Ground-truth depth (metres, 0 = nothing) of a simulator frame, rendered at the chosen size."""
+        if self.ground_truth is None or sim_time_s is None:
             return None
-        d = np.load(path)
-        if size is not None and (d.shape[1], d.shape[0]) != tuple(size):
-            d = cv2.resize(d, tuple(size), interpolation=cv2.INTER_NEAREST)  # never blend depths across edges
-        return d
+        from simulator.render import render
+        from simulator.scene import Scene
+
+        if self._scene is None:
+            self._scene = Scene.from_options(self.meta.extra["simulator"]["scene"])
+        model = self.ground_truth[cam]
+        if size is not None:
+            model = model.scaled(*size)
+        return render(self._scene, model, float(sim_time_s)).depth
 
 
 def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -42,10 +42,11 @@ class CameraResult:
 class GrabResult:
     out_dir: Path
     cameras: dict[str, CameraResult] = field(default_factory=dict)
+    session_errors: list[RigError] = field(default_factory=list)  # trigger board or camera lost mid-train
 
     @property
     def errors(self) -> list[RigError]:
-        return [r.error for r in self.cameras.values() if r.error is not None]
+        return [r.error for r in self.cameras.values() if r.error is not None] + self.session_errors
 
     def summary(self) -> dict:
         return {
@@ -86,9 +87,6 @@ class _Index:
 def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0) -> GrabResult:
     if n < 1:
         raise ConfigError(f"-n: must be at least 1, got {n}")
-    if any(c.trigger == "hardware" for c in cfg.cameras):
-        names = ", ".join(c.name for c in cfg.cameras if c.trigger == "hardware")
-        raise ConfigError(f"grab: cameras {names} wait for hardware triggers; use `rig record` (runs the trigger board) or trigger = \"software\"")
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -97,6 +95,8 @@ def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0) -> GrabRes
     except OSError as exc:
         raise StorageError(f"{out_dir}: cannot create output folder ({exc.strerror})") from None
     result = GrabResult(out_dir)
+    if any(c.trigger == "hardware" for c in cfg.cameras):
+        return _grab_with_board(cfg, n, out_dir, result)
     cameras = []
     try:
         for c in cfg.cameras:  # open all first: a bad URI fails before anything is written
@@ -122,6 +122,45 @@ def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0) -> GrabRes
     return result
 
 
+def _save(frame: Frame, i: int, out_dir: Path, index: _Index, r: CameraResult) -> None:
+    rel = Path(frame.camera) / f"{i:06d}.png"
+    write_image(out_dir / rel, frame.image)
+    record = {"camera": frame.camera, "frame_id": frame.frame_id, "device_ts_ns": frame.device_ts_ns,
+              "host_ts_ns": frame.host_ts_ns, "file": str(rel), "pixel_format": frame.pixel_format}
+    if frame.trigger_index is not None:
+        record["trigger_index"] = frame.trigger_index
+    index.append(record)
+    r.frames += 1
+    r.first_ts = frame.host_ts_ns if r.first_ts is None else r.first_ts
+    r.last_ts = frame.host_ts_ns
+
+
+def _grab_with_board(cfg: RigConfig, n: int, out_dir: Path, result: GrabResult) -> GrabResult:
+    """Hardware-triggered cameras: a train of N pulses from the rig's trigger board."""
+    from rig.session import RigSession
+
+    for c in cfg.cameras:
+        result.cameras[c.name] = CameraResult()
+    index = _Index(out_dir / "frames.jsonl")
+    try:
+        with RigSession(cfg) as session:
+            session.start(pulses=n)
+            for fs in session.framesets():
+                for frame in fs:
+                    r = result.cameras[frame.camera]
+                    _save(frame, r.frames, out_dir, index, r)
+                if session.train_done.is_set() or all(r.frames >= n for r in result.cameras.values()):
+                    session.stop()
+            stats = session.camera_stats()
+            errors = session.errors()
+    finally:
+        index.close()
+    for name, r in result.cameras.items():
+        r.dropped = stats.get(name, {}).get("dropped", 0)
+    result.session_errors = [DeviceError(line) for line in errors]
+    return result
+
+
 def _grab_camera(cam, n: int, out_dir: Path, index: _Index, r: CameraResult, timeout: float) -> None:
     try:
         cam.start()
@@ -129,14 +168,7 @@ def _grab_camera(cam, n: int, out_dir: Path, index: _Index, r: CameraResult, tim
             if cam.settings.trigger == "software":
                 cam.software_trigger()
             frame: Frame = cam.get_frame(timeout)
-            rel = Path(cam.name) / f"{i:06d}.png"
-            write_image(out_dir / rel, frame.image)
-            record = {"camera": frame.camera, "frame_id": frame.frame_id, "device_ts_ns": frame.device_ts_ns,
-                      "host_ts_ns": frame.host_ts_ns, "file": str(rel), "pixel_format": frame.pixel_format}
-            index.append(record)
-            r.frames += 1
-            r.first_ts = frame.host_ts_ns if r.first_ts is None else r.first_ts
-            r.last_ts = frame.host_ts_ns
+            _save(frame, i, out_dir, index, r)
     except RigError as exc:
         r.error = exc
     except Exception as exc:  # keep other cameras going; report this one's failure in one line

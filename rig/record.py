@@ -112,7 +112,13 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
 
 
 def _sim_truth_meta(cfg: RigConfig) -> dict:
-    return {}
+    """A take of simulated cameras carries what the dataset reader needs to render its ground truth."""
+    if not any(c.scheme == "sim" for c in cfg.cameras):
+        return {}
+    from simulator.sensor import sim_rig
+
+    rig = sim_rig(cfg)
+    return {"simulator": {"scene": dict(rig.options), "cameras": rig.calibration.to_dict()["cameras"]}}
 
 
 def _status_text(result: RecordResult, writer: SequenceWriter, session, elapsed: float, out: Path) -> str:

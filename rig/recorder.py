@@ -126,6 +126,8 @@ class SequenceWriter:
                 self._fail(exc, folder / rel.rsplit("/", 1)[1])
                 continue
             rec = {"frame_id": frame.frame_id, "device_ts_ns": frame.device_ts_ns, "host_ts_ns": frame.host_ts_ns, "file": rel}
+            if frame.sim_time_s is not None:
+                rec["sim_time_s"] = frame.sim_time_s
             with self._lock:
                 self.bytes_written += nbytes
                 self.frames_written[name] += 1

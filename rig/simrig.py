@@ -26,7 +26,7 @@ def sim_rig_config(n_cameras: int = 2, width: int = 640, height: int = 360, fps:
             "gain": 0.0,
             "sim": {"seed": i},
         })
-    cfg = {"rig": {"name": f"sim-{n_cameras}cam", "storage": "recordings"}, "sim": {"seed": 0, "people": 2}, "cameras": cameras}
+    cfg = {"rig": {"name": f"sim-{n_cameras}cam", "storage": "recordings"}, "sim": {"seed": 0, "people": 2, "loop_frames": 30}, "cameras": cameras}
     if trigger == "hardware":
         cfg["trigger"] = {"uri": "sim://trigger", "rate_hz": fps, "pulse_width_us": 100.0}
     return cfg

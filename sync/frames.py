@@ -33,6 +33,7 @@ class Frame:
     pixel_format: str = "Mono8"
     exposure_us: Optional[float] = None
     trigger_index: Optional[int] = None
+    sim_time_s: Optional[float] = None  # simulated cameras only: the scene time the image shows (ground truth)
 
     @property
     def height(self) -> int:
@@ -52,6 +53,7 @@ class Frame:
             "pixel_format": self.pixel_format,
             "exposure_us": self.exposure_us,
             "trigger_index": self.trigger_index,
+            "sim_time_s": self.sim_time_s,
         }
 
 

@@ -77,7 +77,10 @@ class SimCamera(Camera):
         self.opts = with_defaults(settings.sim, "camera")
         seed = (int(self.opts["seed"]) * 1_000_003 + zlib.crc32(self.device_name.encode())) & 0x7FFFFFFF
         self.rng = np.random.default_rng(seed)
-        self.source = source or synthetic_source(settings.width, settings.height, seed)
+        self.sensor = None
+        if source is None:
+            source = self._scene_source(settings, seed)
+        self.source = source
         self.exposure_s = (settings.exposure_us or 5000.0) * 1e-6
         self.truth_pulse: dict[int, int] = {}
         self._requests: list[tuple[int, int, Optional[int]]] = []  # heap of (expose_ns, seq, pulse)
@@ -92,6 +95,24 @@ class SimCamera(Camera):
         self._start_ns = 0
         self._last_exposure_end_ns = 0
 
+    def _scene_source(self, settings: CameraConfig, seed: int) -> ImageSource:
+        """The simulated scene seen by this camera of its rig, or a plain test pattern for a lone camera."""
+        rig = getattr(settings, "rig", None)
+        if rig is None:
+            return synthetic_source(settings.width, settings.height, seed)
+        from simulator.sensor import sim_rig
+
+        self.sensor = sim_rig(rig).sensor(settings.name)
+        return self.sensor.image_source()
+
+    def scene_time(self, t: float) -> float:
+        """The scene time an exposure starting at simulated time t shows (the loop replays frames)."""
+        s = self.sensor
+        if s is None or not getattr(s, "loop_frames", 0):
+            return t + self.exposure_s / 2
+        i = int(round((t + self.exposure_s / 2) * s.loop_fps)) % s.loop_frames
+        return i / s.loop_fps + self.exposure_s / 2
+
     # --- clocks ------------------------------------------------------------------------------------
     def device_time_ns(self, host_ns: int) -> int:
         """This camera's clock reading at host monotonic time `host_ns`."""
@@ -103,6 +124,8 @@ class SimCamera(Camera):
         self._check_alive()
         if self._running:
             return
+        if self.sensor is not None and getattr(self.sensor, "loop_frames", 0):
+            self.sensor.prerender(self.exposure_s)  # before the first trigger: replay is real-time, rendering is not
         self._running = True
         self._start_ns = monotonic_ns()
         self._thread = threading.Thread(target=self._run, name=f"sim-camera-{self.name}", daemon=True)
@@ -224,6 +247,7 @@ class SimCamera(Camera):
             host_ts_ns=monotonic_ns(),
             pixel_format=s.pixel_format,
             exposure_us=self.exposure_s * 1e6,
+            sim_time_s=self.scene_time(t),
         )
         try:
             self._out.put_nowait(frame)
