@@ -376,9 +376,15 @@ def _edges(ids):
     return edge
 
 
-def _supersample(shader, batches, boxes, rays, ep, s, kmax, shadows):
+def _supersample(shader, batches, ids, rays, ep, s, kmax, shadows):
     """Box-filtered colour of pixels `ep` (flat indices) from s x s rays each, against the room and
-    primitives 1 .. kmax-1."""
+    those of primitives 1 .. kmax-1 that the pixel-centre ids (flat) show around each pixel."""
+    n_prims = max(int(b.ks.max()) for b in batches) + 1 if batches else 1
+    batch_of = np.full(n_prims, -1, np.int64)
+    local_of = np.zeros(n_prims, np.int64)
+    for bi, b in enumerate(batches):
+        batch_of[b.ks] = bi
+        local_of[b.ks] = np.arange(len(b.ks))
     H, W = rays.height, rays.width
     Xf, Yf = rays.Xf, rays.Yf
     vp = ep // W
@@ -405,17 +411,21 @@ def _supersample(shader, batches, boxes, rays, ep, s, kmax, shadows):
         z = shader.room_intersect(xs, ys)
     sid = np.where(z > NEAR, 0, -1).astype(np.int16)
     z[sid < 0] = np.inf
+    # Candidates of a pixel's sub-rays: the primitives seen at the centres of it and its eight
+    # neighbours (a silhouette inside the pixel shows at a neighbouring centre).
+    near = np.stack([ids[vv * W + uu] for vv in (vl, vp, vr) for uu in (ul, up, ur)], axis=1)
+    near.sort(axis=1)
+    first = np.ones(near.shape, bool)
+    first[:, 1:] = near[:, 1:] != near[:, :-1]
+    first &= (near > 0) & (near < kmax)
+    pix, col = np.nonzero(first)
+    cand = near[pix, col].astype(np.int64)
     pairs = []
     sub = np.arange(S)
-    for b, bx in zip(batches, boxes):
-        J = np.flatnonzero((b.ks < kmax) & (bx[:, 0] < bx[:, 1]))
-        if J.size == 0:
-            continue
-        bb = bx[J]
-        inside = ((vp[None, :] >= bb[:, 0:1] - 1) & (vp[None, :] <= bb[:, 1:2])
-                  & (up[None, :] >= bb[:, 2:3] - 1) & (up[None, :] <= bb[:, 3:4]))
-        jj, pix = np.nonzero(inside)
-        pairs.append((b, (pix[:, None] * S + sub).ravel(), np.repeat(J[jj], S)))
+    for bi, b in enumerate(batches):
+        sel = np.flatnonzero(batch_of[cand] == bi)
+        if sel.size:
+            pairs.append((b, (pix[sel, None] * S + sub).ravel(), np.repeat(local_of[cand[sel]], S)))
     won = _trace(pairs, xs, ys, z, sid)
     N = xs.size
     colour = np.zeros((N, 3), np.float32)
@@ -461,7 +471,7 @@ class _StaticLayer:
         if s > 1:
             ep = np.flatnonzero(_edges(ids.reshape(H, W)))
             if ep.size:
-                colour[ep] = _supersample(shader, batches, boxes, rays, ep, s, nst, shadows=False)
+                colour[ep] = _supersample(shader, batches, ids, rays, ep, s, nst, shadows=False)
         self.z, self.ids, self.colour, self.normals = z, ids, colour, nrm
         self.floor = floor.ravel() & (ids == 0)
 
@@ -555,7 +565,7 @@ def render(scene: Scene, camera: CameraModel, t: float, *, antialias: Optional[i
         if local.size:
             bw = u1 - u0
             ep = (v0 + local // bw) * W + (u0 + local % bw)
-            colour[ep] = _supersample(shader, batches, boxes, rays, ep, s, len(prims), shadows=True)
+            colour[ep] = _supersample(shader, batches, ids, rays, ep, s, len(prims), shadows=True)
 
     ids = ids.reshape(H, W)
     colour = colour.reshape(H, W, 3)

@@ -1,0 +1,105 @@
+"""Ground-truth accuracy of rendered calibration boards.
+
+For the default chessboard and ChArUco board carried along their path (times 0, 2, ..., 18 s) and
+seen by the six cameras of the virtual rig at 1280x720 (lens distortion included), compares
+- the projection of the board's 3D corners by CameraModel.project with cv2.projectPoints;
+- the corners OpenCV's detectors find in the rendered image with that projection:
+  chessboard: findChessboardCorners + cornerSubPix (11x11), and findChessboardCornersSB;
+  ChArUco: CharucoDetector.detectBoard, alone and followed by cornerSubPix (5x5).
+Prints, per detector, the views where it found the board and the error statistics in pixels.
+
+    .venv/bin/python benchmarks/simulator_board_accuracy.py [--size 1280x720] [--json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from simulator.render import render  # noqa: E402
+from simulator.rig import virtual_rig  # noqa: E402
+from simulator.scene import Scene  # noqa: E402
+
+SUBPIX = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+
+
+def _oriented(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    e = np.linalg.norm(found - truth, axis=1)
+    flipped = np.linalg.norm(found[::-1] - truth, axis=1)
+    return e if e.mean() < flipped.mean() else flipped
+
+
+def _stats(errs: list, views: int) -> dict:
+    if not errs:
+        return {"views_found": 0, "views": views}
+    e = np.concatenate(errs)
+    return {"views_found": len(errs), "views": views, "corners": int(e.size), "rms_px": round(float(np.sqrt(np.mean(e ** 2))), 4),
+            "median_px": round(float(np.median(e)), 4), "p95_px": round(float(np.percentile(e, 95)), 4), "max_px": round(float(e.max()), 4)}
+
+
+def measure(kind: str, width: int, height: int, times) -> dict:
+    scene = Scene(seed=0, people=0, board=kind, name="empty")
+    board = scene.board
+    rig = virtual_rig(6, width, height)
+    found: dict[str, list] = {}
+    proj_diff = 0.0
+    views = 0
+    for t in times:
+        _ids, pts = scene.board_corners(t)
+        for cam in rig.cameras:
+            uv, _ = cam.project(pts)
+            rvec, _ = cv2.Rodrigues(cam.R)
+            ref, _ = cv2.projectPoints(pts, rvec, cam.t, cam.K, cam.dist)
+            proj_diff = max(proj_diff, float(np.abs(uv - ref.reshape(-1, 2)).max()))
+            gray = cv2.cvtColor(render(scene, cam, t).rgb, cv2.COLOR_RGB2GRAY)
+            views += 1
+            if kind == "chessboard":
+                size = (board.cols, board.rows)
+                ok, c = cv2.findChessboardCorners(gray, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+                if ok:
+                    c = cv2.cornerSubPix(gray, c, (5, 5), (-1, -1), SUBPIX).reshape(-1, 2)
+                    found.setdefault("findChessboardCorners+cornerSubPix", []).append(_oriented(c, uv))
+                ok, c = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE)
+                if ok:
+                    found.setdefault("findChessboardCornersSB", []).append(_oriented(c.reshape(-1, 2), uv))
+            else:
+                c, ids, _mc, _mi = cv2.aruco.CharucoDetector(board.cv_board()).detectBoard(gray)
+                if ids is not None and len(ids) >= 4:
+                    ids = ids.ravel()
+                    found.setdefault("CharucoDetector", []).append(np.linalg.norm(c.reshape(-1, 2) - uv[ids], axis=1))
+                    c2 = cv2.cornerSubPix(gray, c.astype(np.float32), (2, 2), (-1, -1), SUBPIX).reshape(-1, 2)
+                    found.setdefault("CharucoDetector+cornerSubPix", []).append(np.linalg.norm(c2 - uv[ids], axis=1))
+    return {"board": board.to_dict(), "projection_vs_cv2_max_px": proj_diff,
+            "detectors": {k: _stats(v, views) for k, v in found.items()}}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", default="1280x720")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    w, h = (int(v) for v in args.size.split("x"))
+    times = [2.0 * i for i in range(10)]
+    res = {kind: measure(kind, w, h, times) for kind in ("chessboard", "charuco")}
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    for kind, r in res.items():
+        print(f"{kind} {r['board']}  projection vs cv2.projectPoints: max {r['projection_vs_cv2_max_px']:.2e} px")
+        for name, s in r["detectors"].items():
+            if s["views_found"]:
+                print(f"  {name:38s} found {s['views_found']:2d}/{s['views']} views, {s['corners']:4d} corners: "
+                      f"rms {s['rms_px']:.3f}  median {s['median_px']:.3f}  p95 {s['p95_px']:.3f}  max {s['max_px']:.3f} px")
+            else:
+                print(f"  {name:38s} found 0/{s['views']} views")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
