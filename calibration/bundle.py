@@ -1,12 +1,15 @@
 """Sparse bundle adjustment of a camera rig observing a planar board.
 
 Unknowns: intrinsics per camera (fx fy cx cy k1 k2 p1 p2 k3), the pose of every camera in the world
-(world-to-camera rotation vector and translation; the reference camera is held at the origin to fix the
-gauge) and the pose of the board in every view (board-to-world). The board's known geometry fixes the
-scale. Each corner observation depends on one block of each kind, so the Jacobian is block-sparse: we
-evaluate it per observation (21 columns, central differences applied to all blocks at once) and
-accumulate the normal equations by scattering each observation's 21x21 block; Levenberg-Marquardt with
-Marquardt's diagonal scaling solves them.
+(world-to-camera rotation and translation; the reference camera is held at the origin to fix the gauge)
+and the pose of the board in every view (board-to-world). The board's known geometry fixes the scale.
+
+Each corner depends on one block of each kind (its camera's intrinsics, its camera's pose, its view's
+pose), so the Jacobian is block-sparse: we evaluate each corner's 2x21 block analytically, sum the
+21x21 normal-equation blocks per camera view, scatter them into the (small, dense) normal matrix and
+solve with Levenberg-Marquardt and Marquardt's diagonal scaling. Rotations are updated on the manifold
+(R <- exp([d]x) R), which keeps every step well-conditioned whatever the rotation.
+`numeric_jacobian` is the plain finite-difference reference the analytic one is tested against.
 """
 from __future__ import annotations
 
@@ -14,14 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.geometry import project_rad_tan, rodrigues
+from calibration.geometry import project_rad_tan, rodrigues, rotation_vector
 
 N_INTR = 9
+N_LOCAL = N_INTR + 6 + 6
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
-
-# Central-difference steps per parameter slot: pixels for fx..cy, unitless for distortion,
-# radians for rotations, metres for translations.
-_STEPS = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-7, 1e-7, 1e-8, 1e-8, 1e-7] + [1e-7] * 3 + [1e-7] * 3 + [1e-7] * 3 + [1e-7] * 3)
 
 
 @dataclass
@@ -37,11 +37,36 @@ class Problem:
 
 
 @dataclass
+class State:
+    intr: np.ndarray  # (C, 9)
+    Rc: np.ndarray  # (C, 3, 3) world-to-camera
+    tc: np.ndarray  # (C, 3)
+    Rv: np.ndarray  # (V, 3, 3) board-to-world
+    tv: np.ndarray  # (V, 3)
+
+    @classmethod
+    def from_vectors(cls, intr, cams, views) -> "State":
+        cams = np.asarray(cams, dtype=np.float64)
+        views = np.asarray(views, dtype=np.float64)
+        return cls(np.array(intr, dtype=np.float64), rodrigues(cams[:, :3]), cams[:, 3:].copy(), rodrigues(views[:, :3]), views[:, 3:].copy())
+
+    def vectors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cams = np.concatenate([np.array([rotation_vector(R) for R in self.Rc]).reshape(-1, 3), self.tc], axis=1)
+        views = np.concatenate([np.array([rotation_vector(R) for R in self.Rv]).reshape(-1, 3), self.tv], axis=1)
+        return self.intr.copy(), cams, views
+
+    def updated(self, d_intr: np.ndarray, d_cam: np.ndarray, d_view: np.ndarray) -> "State":
+        """The state moved by a step: intrinsics and translations add, rotations compose on the left."""
+        return State(self.intr + d_intr, rodrigues(d_cam[:, :3]) @ self.Rc, self.tc + d_cam[:, 3:],
+                     rodrigues(d_view[:, :3]) @ self.Rv, self.tv + d_view[:, 3:])
+
+
+@dataclass
 class Solution:
     intrinsics: np.ndarray  # (C, 9)
     cameras: np.ndarray  # (C, 6) world-to-camera rvec, t
     views: np.ndarray  # (V, 6) board-to-world rvec, t
-    residuals: np.ndarray  # (M, 2) pixels
+    residuals: np.ndarray  # (M, 2) pixels, in the problem's corner order
     iterations: int
     converged: bool
     intrinsics_std: np.ndarray  # (C, 9) one-sigma uncertainty (0 where held fixed)
@@ -51,30 +76,91 @@ class Solution:
         return float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else float("nan")
 
 
-def residuals(problem: Problem, intr: np.ndarray, cams: np.ndarray, views: np.ndarray) -> np.ndarray:
-    Rc = rodrigues(cams[:, :3])
-    Rv = rodrigues(views[:, :3])
+def _camera_points(problem: Problem, s: State):
     ci, vi = problem.cam_idx, problem.view_idx
-    Xw = np.einsum("mij,mj->mi", Rv[vi], problem.board_xyz) + views[vi, 3:]
-    Xc = np.einsum("mij,mj->mi", Rc[ci], Xw) + cams[ci, 3:]
-    return project_rad_tan(intr[ci], Xc) - problem.uv
+    Xb = np.einsum("mij,mj->mi", s.Rv[vi], problem.board_xyz)  # board point rotated into the world
+    Xw = Xb + s.tv[vi]
+    Xr = np.einsum("mij,mj->mi", s.Rc[ci], Xw)  # world point rotated into the camera
+    return Xb, Xr, Xr + s.tc[ci]
 
 
-def _jacobian(problem: Problem, intr: np.ndarray, cams: np.ndarray, views: np.ndarray) -> np.ndarray:
-    """(M, 2, 21): derivative of each corner's residual w.r.t. its camera's intrinsics, pose and its view's pose."""
-    M = len(problem.uv)
-    J = np.empty((M, 2, 21))
-    blocks = (intr, cams, views)
-    offsets = (0, N_INTR, N_INTR + 6)
-    for b, block in enumerate(blocks):
-        for k in range(block.shape[1]):
-            slot = offsets[b] + k
-            h = _STEPS[slot] * (max(1.0, float(np.abs(block[:, k]).max())) if b == 0 and k < 4 else 1.0)
-            plus = [x.copy() for x in blocks]
-            minus = [x.copy() for x in blocks]
-            plus[b][:, k] += h
-            minus[b][:, k] -= h
-            J[:, :, slot] = (residuals(problem, *plus) - residuals(problem, *minus)) / (2 * h)
+def residuals(problem: Problem, s: State) -> np.ndarray:
+    _, _, Xc = _camera_points(problem, s)
+    return project_rad_tan(s.intr[problem.cam_idx], Xc) - problem.uv
+
+
+def _skew_neg(a: np.ndarray) -> np.ndarray:
+    """-[a]x for (M, 3) vectors: d(exp([d]x) a)/dd at d = 0."""
+    z = np.zeros(len(a))
+    return np.stack([np.stack([z, a[:, 2], -a[:, 1]], -1), np.stack([-a[:, 2], z, a[:, 0]], -1), np.stack([a[:, 1], -a[:, 0], z], -1)], -2)
+
+
+def jacobian(problem: Problem, s: State) -> np.ndarray:
+    """(M, 2, 21): each corner's residual w.r.t. its camera's intrinsics (9), its camera's pose (rotation
+    increment, translation) and its view's pose (rotation increment, translation)."""
+    ci = problem.cam_idx
+    Xb, Xr, Xc = _camera_points(problem, s)
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = s.intr[ci].T
+    z = Xc[:, 2]
+    x = Xc[:, 0] / z
+    y = Xc[:, 1] / z
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    M = len(x)
+    J = np.zeros((M, 2, N_LOCAL))
+    J[:, 0, 0] = xd
+    J[:, 1, 1] = yd
+    J[:, 0, 2] = 1.0
+    J[:, 1, 3] = 1.0
+    J[:, 0, 4] = fx * x * r2
+    J[:, 1, 4] = fy * y * r2
+    J[:, 0, 5] = fx * x * r2 * r2
+    J[:, 1, 5] = fy * y * r2 * r2
+    J[:, 0, 6] = fx * 2 * x * y
+    J[:, 1, 6] = fy * (r2 + 2 * y * y)
+    J[:, 0, 7] = fx * (r2 + 2 * x * x)
+    J[:, 1, 7] = fy * 2 * x * y
+    J[:, 0, 8] = fx * x * r2 ** 3
+    J[:, 1, 8] = fy * y * r2 ** 3
+    # Pixel w.r.t. the camera-frame point: focal scaling, distortion, perspective division.
+    g = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dxx = radial + 2 * x * x * g + 2 * p1 * y + 6 * p2 * x
+    dxy = 2 * x * y * g + 2 * p1 * x + 2 * p2 * y
+    dyy = radial + 2 * y * y * g + 6 * p1 * y + 2 * p2 * x
+    A = np.empty((M, 2, 2))
+    A[:, 0, 0] = fx * dxx
+    A[:, 0, 1] = fx * dxy
+    A[:, 1, 0] = fy * dxy
+    A[:, 1, 1] = fy * dyy
+    Pz = np.zeros((M, 2, 3))
+    Pz[:, 0, 0] = 1 / z
+    Pz[:, 1, 1] = 1 / z
+    Pz[:, 0, 2] = -x / z
+    Pz[:, 1, 2] = -y / z
+    dUV_dXc = A @ Pz  # (M, 2, 3)
+    J[:, :, 9:12] = dUV_dXc @ _skew_neg(Xr)
+    J[:, :, 12:15] = dUV_dXc
+    dUV_dXw = dUV_dXc @ s.Rc[ci]
+    J[:, :, 15:18] = dUV_dXw @ _skew_neg(Xb)
+    J[:, :, 18:21] = dUV_dXw
+    return J
+
+
+def numeric_jacobian(problem: Problem, s: State, h: float = 1e-6) -> np.ndarray:
+    """Central differences of `residuals` in the same local parameters as `jacobian` (the reference)."""
+    C, V = len(s.intr), len(s.tv)
+    J = np.empty((len(problem.uv), 2, N_LOCAL))
+    for k in range(N_LOCAL):
+        d = [np.zeros((C, N_INTR)), np.zeros((C, 6)), np.zeros((V, 6))]
+        b, slot = (0, k) if k < N_INTR else ((1, k - N_INTR) if k < N_INTR + 6 else (2, k - N_INTR - 6))
+        step = h * (max(1.0, float(np.abs(s.intr[:, slot]).max())) if b == 0 and slot < 4 else 1.0)
+        d[b][:, slot] = step
+        plus = residuals(problem, s.updated(*d))
+        d[b][:, slot] = -step
+        minus = residuals(problem, s.updated(*d))
+        J[:, :, k] = (plus - minus) / (2 * step)
     return J
 
 
@@ -98,16 +184,17 @@ def solve(
     fixed_intrinsics: np.ndarray | None = None,
     max_iterations: int = 60,
     tolerance: float = 1e-10,
+    weights: np.ndarray | None = None,
 ) -> Solution:
     """Minimise the squared reprojection error over all free parameters.
 
-    `fixed_intrinsics` (C, 9) bool marks intrinsic slots held at their start value (e.g. k3 when a camera
-    has too few views to pin it down); the poses of `fixed_cameras` are held (the gauge).
+    `cams0` (C, 6) and `views0` (V, 6) are rotation vectors and translations. `fixed_intrinsics` (C, 9)
+    bool marks intrinsic slots held at their start value (e.g. k3 when a camera has too few views to pin
+    it down); the poses of `fixed_cameras` are held (the gauge). `weights` (M,) scales each corner's
+    squared error (1 / its noise variance); the returned residuals are unweighted.
     """
     C, V = problem.n_cameras, problem.n_views
-    intr = np.array(intr0, dtype=np.float64).reshape(C, N_INTR)
-    cams = np.array(cams0, dtype=np.float64).reshape(C, 6)
-    views = np.array(views0, dtype=np.float64).reshape(V, 6)
+    state = State.from_vectors(np.asarray(intr0).reshape(C, N_INTR), np.asarray(cams0).reshape(C, 6), np.asarray(views0).reshape(V, 6))
     P = C * N_INTR + C * 6 + V * 6
     free = np.ones(P, dtype=bool)
     if fixed_intrinsics is not None:
@@ -121,53 +208,67 @@ def solve(
     reduced = np.full(P, -1)
     reduced[free] = np.arange(int(free.sum()))
     Pr = int(free.sum())
-    gidx = reduced[_global_index(problem)]
+
+    # Work on corners grouped by camera view, so the normal equations can be summed per view first.
+    key = problem.cam_idx.astype(np.int64) * V + problem.view_idx
+    order = np.argsort(key, kind="stable")
+    prob = Problem(problem.cam_idx[order], problem.view_idx[order], problem.board_xyz[order], problem.uv[order], C, V)
+    starts = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
+    ends = np.r_[starts[1:], len(order)]
+    gidx = reduced[_global_index(prob)[starts]]
     gidx = np.where(gidx < 0, Pr, gidx)  # fixed columns go to a dummy slot that is dropped
+    w = np.ones(len(prob.uv)) if weights is None else np.asarray(weights, dtype=np.float64)[order]
+    sw = np.sqrt(w)[:, None]
 
-    def pack() -> np.ndarray:
-        return np.concatenate([intr.ravel(), cams.ravel(), views.ravel()])
+    def weighted_residuals(s: State) -> np.ndarray:
+        return residuals(prob, s) * sw
 
-    def unpack(p: np.ndarray):
-        a = C * N_INTR
-        b = a + C * 6
-        return p[:a].reshape(C, N_INTR), p[a:b].reshape(C, 6), p[b:].reshape(V, 6)
-
-    def normal_equations(J: np.ndarray, r: np.ndarray):
+    def normal_equations(s: State, r: np.ndarray):
+        J = jacobian(prob, s) * sw[:, :, None]
+        # One dense product per camera view (tens of corners): far cheaper than a 21x21 block per corner.
+        A = np.empty((len(starts), N_LOCAL, N_LOCAL))
+        g = np.empty((len(starts), N_LOCAL))
+        for k, (a, b) in enumerate(zip(starts, ends)):
+            Jo = J[a:b].reshape(-1, N_LOCAL)
+            A[k] = Jo.T @ Jo
+            g[k] = Jo.T @ r[a:b].reshape(-1)
         n = Pr + 1
-        A = np.einsum("mri,mrj->mij", J, J)
-        g = np.einsum("mri,mr->mi", J, r)
         flat = (gidx[:, :, None] * n + gidx[:, None, :]).ravel()
         H = np.bincount(flat, weights=A.ravel(), minlength=n * n).reshape(n, n)[:Pr, :Pr]
         grad = np.bincount(gidx.ravel(), weights=g.ravel(), minlength=n)[:Pr]
         return H, grad
 
-    p = pack()
-    r = residuals(problem, intr, cams, views)
+    def step(s: State, dx: np.ndarray) -> State:
+        full = np.zeros(P)
+        full[free] = dx
+        a = C * N_INTR
+        b = a + C * 6
+        return s.updated(full[:a].reshape(C, N_INTR), full[a:b].reshape(C, 6), full[b:].reshape(V, 6))
+
+    r = weighted_residuals(state)
     cost = float(np.sum(r * r))
     lam = 1e-3
     converged = False
     it = 0
     H = None
+    rel = 0.0
     for it in range(1, max_iterations + 1):
-        J = _jacobian(problem, *unpack(p))
-        H, grad = normal_equations(J, r)
+        H, grad = normal_equations(state, r)
         diag = np.diag(H).copy()
         diag[diag <= 0] = 1.0
         improved = False
         for _ in range(12):
-            A = H + lam * np.diag(diag)
             try:
-                dx = np.linalg.solve(A, -grad)
+                dx = np.linalg.solve(H + lam * np.diag(diag), -grad)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            p_new = p.copy()
-            p_new[free] += dx
-            r_new = residuals(problem, *unpack(p_new))
+            candidate = step(state, dx)
+            r_new = weighted_residuals(candidate)
             cost_new = float(np.sum(r_new * r_new))
             if np.isfinite(cost_new) and cost_new < cost:
                 rel = (cost - cost_new) / max(cost, 1e-300)
-                p, r, cost = p_new, r_new, cost_new
+                state, r, cost = candidate, r_new, cost_new
                 lam = max(lam / 3.0, 1e-12)
                 improved = True
                 break
@@ -176,7 +277,6 @@ def solve(
             converged = True
             break
 
-    intr, cams, views = unpack(p)
     std = np.zeros(C * N_INTR)
     if H is not None and len(r) * 2 > Pr:
         sigma2 = cost / (2 * len(r) - Pr)
@@ -187,4 +287,7 @@ def solve(
             std = full[: C * N_INTR]
         except np.linalg.LinAlgError:
             pass
-    return Solution(intr.copy(), cams.copy(), views.copy(), r, it, converged, std.reshape(C, N_INTR))
+    unweighted = np.empty_like(r)
+    unweighted[order] = r / sw
+    intr, cams, views = state.vectors()
+    return Solution(intr, cams, views, unweighted, it, converged, std.reshape(C, N_INTR))

@@ -162,6 +162,7 @@ def build_report(result: "CalibrationResult") -> dict[str, Any]:
             ),
             "images": result.images_seen.get(name),
             "rejected": rejected_by_cam.get(name, 0),
+            "corners_rejected": result.corners_rejected.get(name, 0),
             "coverage": cov,
         }
         if views_used[name] < MIN_GOOD_VIEWS:

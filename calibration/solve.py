@@ -36,7 +36,8 @@ class Options:
     outlier_px: float = 1.0  # an observation is an outlier above max(outlier_px, outlier_factor * median RMS)
     outlier_factor: float = 5.0
     fix_k3: bool | None = None  # None: fix k3 for cameras with fewer than MIN_VIEWS_FOR_K3 views
-    max_rounds: int = 4  # bundle adjustment + rejection rounds
+    max_rounds: int = 5  # bundle adjustment + rejection rounds
+    reweight: bool = True  # weight each camera view by its measured corner noise
 
 
 @dataclass
@@ -86,6 +87,7 @@ class CalibrationResult:
     solution: bundle.Solution
     image_size: dict[str, tuple[int, int]]
     images_seen: dict[str, int] = field(default_factory=dict)
+    corners_rejected: dict[str, int] = field(default_factory=dict)  # single corners dropped, per camera
 
 
 def natural_key(s: str):
@@ -287,29 +289,56 @@ def calibrate_rig(
         fixed_intr[ci, 8] = intr[c].fix_k3
 
     active = np.ones(len(uv), dtype=bool)
+    corners_rejected = np.zeros(len(order), dtype=int)
+    sigma = None  # per-corner noise estimate (its camera view's RMS), once a first fit gives one
     sol = None
     for round_ in range(opts.max_rounds):
         say(f"bundle adjustment, round {round_ + 1}")
         problem = bundle.Problem(cam_idx[active], view_idx[active], object_points[ids[active]], uv[active], len(order), len(views))
-        sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr)
+        w = None if sigma is None else 1.0 / sigma[active] ** 2
+        sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr, weights=w)
         intr0, cams0, view_pose = sol.intrinsics, sol.cameras, sol.views
-        # RMS per (camera, view) observation.
-        key = problem.cam_idx * len(views) + problem.view_idx
-        sq = np.sum(sol.residuals ** 2, axis=1)
-        uniq, inv = np.unique(key, return_inverse=True)
-        rms = np.sqrt(np.bincount(inv, weights=sq) / np.bincount(inv))
-        limit = _threshold(list(rms), opts)
-        bad = uniq[rms > limit]
-        if len(bad) == 0:
+        if round_ == opts.max_rounds - 1:
             break
+        # Single corners far off (a refinement caught by a nearby edge) go; so does a whole camera view
+        # whose corners fit badly or are largely off (a mis-detected board, a moved board).
+        norm = np.linalg.norm(sol.residuals, axis=1)
+        corner_limit = max(0.5 * opts.outlier_px, 5.0 * float(np.median(norm)))
+        off = norm > corner_limit
+        key = problem.cam_idx * len(views) + problem.view_idx
+        uniq, inv = np.unique(key, return_inverse=True)
+        n_obs = np.bincount(inv)
+        good = ~off
+        rms = np.sqrt(np.bincount(inv, weights=np.where(good, norm ** 2, 0.0)) / np.maximum(np.bincount(inv, weights=good.astype(float)), 1))
+        off_frac = np.bincount(inv, weights=off.astype(float)) / n_obs
+        limit = _threshold(list(rms), opts)
+        bad_obs = (rms > limit) | (off_frac > 0.25)
+        if not bad_obs.any() and not off.any() and (sigma is not None or not opts.reweight):
+            break
+        if opts.reweight:
+            # Corners are weighted by their view's noise: a board seen at a grazing angle is measured
+            # less precisely than one seen face-on and should count for less. The floor keeps a
+            # lucky, nearly noise-free view from dominating.
+            view_sigma = np.maximum(rms, 0.5 * float(np.median(rms))) / np.sqrt(2.0)
+            all_key = cam_idx * len(views) + view_idx
+            lookup = dict(zip(uniq.tolist(), view_sigma.tolist()))
+            med_sigma = float(np.median(view_sigma))
+            sigma = np.array([lookup.get(k, med_sigma) for k in all_key.tolist()]) / med_sigma
         med = float(np.median(rms))
-        for k, e in zip(uniq, rms):
+        for k, e, f, b in zip(uniq, rms, off_frac, bad_obs):
+            if not b:
+                continue
+            c, v = order[k // len(views)], views[k % len(views)]
             if e > limit:
-                c, v = order[k // len(views)], views[k % len(views)]
-                rejected.append(Rejection(c, v, "joint", float(e),
-                                          f"reprojection RMS {e:.2f} px in the joint rig fit, above the limit {limit:.2f} px (median {med:.2f} px)"))
-        all_key = cam_idx * len(views) + view_idx
-        active &= ~np.isin(all_key, bad)
+                why = f"reprojection RMS {e:.2f} px in the joint rig fit, above the limit {limit:.2f} px (median {med:.2f} px)"
+            else:
+                why = f"{f * 100:.0f}% of its corners are more than {corner_limit:.2f} px off in the joint rig fit"
+            rejected.append(Rejection(c, v, "joint", float(e), why))
+        active_idx = np.flatnonzero(active)
+        drop = bad_obs[inv] | off
+        single = off & ~bad_obs[inv]
+        np.add.at(corners_rejected, problem.cam_idx[single], 1)
+        active[active_idx[drop]] = False
         for ci, c in enumerate(order):
             if not np.any(active & (cam_idx == ci)):
                 raise CalibrationError(f"camera '{c}': every view was rejected as an outlier; check the images of this camera")
@@ -324,7 +353,8 @@ def calibrate_rig(
         cameras.append(CameraModel(c, w, h, K, np.array(d), R, sol.cameras[ci, 3:].copy()))
     rig = RigCalibration(cameras, {})
     obs = Observations(order, views, cam_idx[active], view_idx[active], ids[active], uv[active], sol.residuals)
-    result = CalibrationResult(rig, left, right, obs, intr, rejected, stereo, sol, dict(detections.image_size), dict(detections.images_seen))
+    result = CalibrationResult(rig, left, right, obs, intr, rejected, stereo, sol, dict(detections.image_size), dict(detections.images_seen),
+                               {c: int(n) for c, n in zip(order, corners_rejected)})
     rig.meta.update(summary_meta(result, board))
     return result
 

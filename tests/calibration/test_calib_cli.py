@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib_synthetic import warp_board
+from calibration.synthetic import warp_board
 from calibration.boards import CharucoSpec
 from calibration.detect import detect
 from rig.cli import main

@@ -4,7 +4,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calib_synthetic import warp_board
+from calibration.synthetic import warp_board
 from calibration.boards import CharucoSpec, ChessboardSpec
 from calibration.detect import canonical_chessboard_order, detect
 

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib_synthetic import arc_rig
+from calibration.synthetic import arc_rig
 from calibration.camera import CalibrationError
 from calibration.export import export
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib_synthetic import arc_rig, board_poses, in_frame_of, observe
+from calibration.synthetic import arc_rig, board_poses, in_frame_of, observe
 from calibration.boards import CharucoSpec
 from calibration.camera import CalibrationError
 from calibration.detect import Corners

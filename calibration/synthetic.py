@@ -1,7 +1,9 @@
-"""Board observations computed from known cameras (no images): the solver's own ground truth.
+"""Synthetic calibration data with known ground truth, for tests and benchmarks of the solver and the
+detector alone (the simulator renders whole scenes; this is much cheaper and isolates one stage).
 
-Corners are projected with CameraModel.project (the same distortion model the file stores) and given
-Gaussian pixel noise, so a test can tell solver error from detection error.
+- `arc_rig`, `board_poses`, `observe`: board corners projected by known cameras (CameraModel.project,
+  the distortion model the file stores) plus Gaussian pixel noise: solver error apart from detection.
+- `warp_board`: the printable board seen through a known homography, antialiased: detector accuracy.
 """
 from __future__ import annotations
 
