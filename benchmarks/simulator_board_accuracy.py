@@ -40,7 +40,8 @@ def _stats(errs: list, views: int) -> dict:
         return {"views_found": 0, "views": views}
     e = np.concatenate(errs)
     return {"views_found": len(errs), "views": views, "corners": int(e.size), "rms_px": round(float(np.sqrt(np.mean(e ** 2))), 4),
-            "median_px": round(float(np.median(e)), 4), "p95_px": round(float(np.percentile(e, 95)), 4), "max_px": round(float(e.max()), 4)}
+            "median_px": round(float(np.median(e)), 4), "p95_px": round(float(np.percentile(e, 95)), 4), "max_px": round(float(e.max()), 4),
+            "within_0.1px": round(float(np.mean(e <= 0.1)), 4)}
 
 
 def measure(kind: str, width: int, height: int, times) -> dict:
@@ -95,7 +96,8 @@ def main(argv=None) -> int:
         for name, s in r["detectors"].items():
             if s["views_found"]:
                 print(f"  {name:38s} found {s['views_found']:2d}/{s['views']} views, {s['corners']:4d} corners: "
-                      f"rms {s['rms_px']:.3f}  median {s['median_px']:.3f}  p95 {s['p95_px']:.3f}  max {s['max_px']:.3f} px")
+                      f"rms {s['rms_px']:.3f}  median {s['median_px']:.3f}  p95 {s['p95_px']:.3f}  max {s['max_px']:.3f} px, "
+                      f"{100 * s['within_0.1px']:.1f}% within 0.1 px")
             else:
                 print(f"  {name:38s} found 0/{s['views']} views")
     return 0
