@@ -118,11 +118,11 @@ def wall_texture(rng: np.random.Generator, size: int, base) -> np.ndarray:
                     y = int(cy - hh / 2 + dy + k * hh / 6)
                     cv2.line(im, (p0[0], y), (p1[0], y), c, max(1, int(size / 128)), cv2.LINE_AA)
 
-        mask = np.zeros((size, size, 3), np.float32)
-        _draw_wrapped(mask, lambda im, dx, dy: draw(im, dx, dy))
-        cover = (mask.sum(axis=2, keepdims=True) > 0).astype(np.float32)
-        canvas = canvas * (1 - cover) + mask
-        img = img * (1 - 0.85 * cover)
+        layer = np.zeros((size, size, 3), np.float32)
+        _draw_wrapped(layer, lambda im, dx, dy: draw(im, dx, dy))
+        cover = (cv2.cvtColor(layer, cv2.COLOR_RGB2GRAY) > 0)[..., None]
+        np.copyto(canvas, layer, where=cover)
+        img[cover[..., 0]] *= 0.15
     img = img + 0.85 * canvas * (1.0 + 0.15 * periodic_noise(rng, size, 1.0, 2.0)[..., None])
     return _to_uint8(img)
 
