@@ -170,6 +170,13 @@ class SensorModel:
             return self.digitise(self._loop_radiance(t_start_s + exposure_s / 2, exposure_s), exposure_s, rng, raw, fast_noise=True)
         return self.digitise(self.radiance(t_start_s, exposure_s), exposure_s, rng, raw)
 
+    def scene_time(self, t_start_s: float, exposure_s: float) -> float:
+        """The scene instant an exposure shows (its middle; in loop mode, the replayed frame's)."""
+        t_mid = t_start_s + exposure_s / 2
+        if self.loop_frames <= 0:
+            return t_mid
+        return (int(round(t_mid * self.loop_fps)) % self.loop_frames) / self.loop_fps + exposure_s / 2
+
     def image_source(self) -> ImageSource:
         """A callable (t, exposure_s, rng) -> RGB uint8, the image source of the sim:// backend."""
         return lambda t, exposure_s, rng: self.expose(max(0.0, t), exposure_s, rng)

@@ -106,6 +106,7 @@ def test_sim_rig_places_config_cameras_on_the_arc_and_loops_prerendered_frames()
     b = s.expose(0.4, 0.005, np.random.default_rng(2))  # 0.4 s = 4 frames later: the same loop frame
     assert s._loop is not None and s._loop.shape == (4, 54, 96, 3)
     assert 0 < np.abs(a.astype(float) - b).mean() < 3, "same frame, fresh noise"
+    assert s.scene_time(0.4, 0.005) == pytest.approx(0.0025) and s.scene_time(0.2, 0.005) == pytest.approx(0.2025)
     c = s.expose(0.2, 0.005, np.random.default_rng(3))
     assert np.abs(a.astype(float) - c).mean() > np.abs(a.astype(float) - b).mean()
     source = camera_source(_config(loop_frames=4, loop_fps=10.0), "left")
