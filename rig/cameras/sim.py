@@ -107,11 +107,9 @@ class SimCamera(Camera):
 
     def scene_time(self, t: float) -> float:
         """The scene time an exposure starting at simulated time t shows (the loop replays frames)."""
-        s = self.sensor
-        if s is None or not getattr(s, "loop_frames", 0):
+        if self.sensor is None:
             return t + self.exposure_s / 2
-        i = int(round((t + self.exposure_s / 2) * s.loop_fps)) % s.loop_frames
-        return i / s.loop_fps + self.exposure_s / 2
+        return self.sensor.scene_time(t, self.exposure_s)
 
     # --- clocks ------------------------------------------------------------------------------------
     def device_time_ns(self, host_ns: int) -> int:
