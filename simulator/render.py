@@ -34,7 +34,7 @@ NEAR = 0.01  # metres: nothing closer to the camera is drawn
 DEFAULT_ANTIALIAS = 3
 DEFAULT_PSF = 0.5  # pixels: Gaussian sigma of the lens blur (real lenses are never perfectly sharp)
 SHADOW_STRENGTH = 0.45
-SHADOW_RADIUS = 0.9  # metres: extent of a person's contact shadow on the floor
+SHADOW_RADIUS = 0.75  # metres: extent of a person's contact shadow on the floor
 
 
 @dataclass
@@ -271,11 +271,11 @@ class _Shader:
             normals = [float(R[i, 0]) * nw[0] + float(R[i, 1]) * nw[1] + float(R[i, 2]) * nw[2] for i in range(3)]
         return ax, ay, lod, lum, normals, floor
 
-    def shadow_factor(self, px, pz):
-        """Soft contact shadows of the people on the floor at floor points (px, pz)."""
+    def shadow_factor(self, px, pz, people=None):
+        """Soft contact shadows of the people (default: all) on the floor at floor points (px, pz)."""
         shade = np.ones(px.shape, np.float32)
         k = 1.0 / SHADOW_RADIUS ** 2
-        for (gx, gz) in self.shadows:
+        for (gx, gz) in (self.shadows if people is None else people):
             w = np.maximum(1.0 - ((px - gx) ** 2 + (pz - gz) ** 2) * k, 0.0)
             shade *= 1.0 - SHADOW_STRENGTH * (w * w)
         return shade
@@ -474,6 +474,8 @@ class _StaticLayer:
                 colour[ep] = _supersample(shader, batches, ids, rays, ep, s, nst, shadows=False)
         self.z, self.ids, self.colour, self.normals = z, ids, colour, nrm
         self.floor = floor.ravel() & (ids == 0)
+        # world (x, z) of the floor seen at each pixel, where the people's contact shadows fall
+        self.floor_x, self.floor_z = (a.ravel().astype(np.float32) for a in shader.floor_points(X, Y, t_room.reshape(H, W)))
 
 
 def _static_layer(scene, camera, shader, batches, boxes, rays, s, normals) -> _StaticLayer:
@@ -537,17 +539,16 @@ def render(scene: Scene, camera: CameraModel, t: float, *, antialias: Optional[i
     colour[r] = col
 
     # contact shadows on the floor around each person
-    if shader.shadows:
-        centres = [camera.R @ np.array([gx, 0.0, gz]) + camera.t for gx, gz in shader.shadows]
-        n_sh = len(centres)
-        bx = rays.sphere_boxes(centres, [SHADOW_RADIUS] * n_sh, [0] * n_sh, 1)[0]  # one rectangle for all
-        v0, v1, u0, u1 = (int(a) for a in bx)
-        if v0 < v1:
-            local = np.flatnonzero(static.floor.reshape(H, W)[v0:v1, u0:u1] & (ids.reshape(H, W)[v0:v1, u0:u1] == 0))
-            bw = u1 - u0
-            fi = (v0 + local // bw) * W + (u0 + local % bw)
-            px, pz = shader.floor_points(rays.Xf[fi], rays.Yf[fi], z[fi])
-            colour[fi] *= shader.shadow_factor(px, pz)[:, None]
+    # (each person darkens the floor within its own rectangle; where they overlap, the factors multiply)
+    for gx, gz in shader.shadows:
+        c = camera.R @ np.array([gx, 0.0, gz]) + camera.t
+        v0, v1, u0, u1 = (int(a) for a in rays.sphere_boxes(c, [SHADOW_RADIUS], [0], 1)[0])
+        if v0 >= v1:
+            continue
+        local = np.flatnonzero(static.floor.reshape(H, W)[v0:v1, u0:u1] & (ids.reshape(H, W)[v0:v1, u0:u1] == 0))
+        bw = u1 - u0
+        fi = (v0 + local // bw) * W + (u0 + local % bw)
+        colour[fi] *= shader.shadow_factor(static.floor_x[fi], static.floor_z[fi], [(gx, gz)])[:, None]
 
     # re-filter the silhouettes the moving primitives changed (static ones are filtered already)
     dyn = [bx[b.ks >= nst] for b, bx in zip(batches, boxes)]
@@ -571,7 +572,8 @@ def render(scene: Scene, camera: CameraModel, t: float, *, antialias: Optional[i
     colour = colour.reshape(H, W, 3)
     if psf > 0:
         colour = cv2.GaussianBlur(colour, (0, 0), psf, borderType=cv2.BORDER_REFLECT)
-    depth = np.where(ids >= 0, z.reshape(H, W), 0.0).astype(np.float32)
+    depth = z.reshape(H, W)  # this frame's own copy
+    depth[ids < 0] = 0.0
     first_person = next((k for k, p in enumerate(prims) if p.person), len(prims))
     mask = ids >= first_person  # people come last in the scene's list
     rgb = cv2.convertScaleAbs(colour, alpha=255.0)
