@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
-from typing import Optional, Union
+from typing import Union
 
 import numpy as np
 
