@@ -79,10 +79,27 @@ def test_board_corners_project_like_opencv():
             assert np.abs(uv - ref.reshape(-1, 2)).max() < 0.05
 
 
-def _errors(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    e = np.linalg.norm(found - truth, axis=1)
-    flipped = np.linalg.norm(found[::-1] - truth, axis=1)  # the detector may start from either end
-    return e if e.mean() < flipped.mean() else flipped
+def test_board_surface_lies_where_opencv_puts_it():
+    """Every board pixel's depth is the intersection of OpenCV's undistorted ray with the board plane."""
+    scene = Scene(seed=0, people=0, board="charuco", name="empty")
+    for t, cam in ((2.0, virtual_rig(6, 960, 540)["left"]), (11.0, virtual_rig(6, 960, 540)["sup3"])):
+        r = render(scene, cam, t)
+        vv, uu = np.nonzero(r.ids == r.labels.index("board"))
+        assert vv.size > 10000
+        uv = np.stack([uu, vv], axis=1).astype(np.float64).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15)
+        xy = cv2.undistortPoints(uv, cam.K, cam.dist, criteria=crit).reshape(-1, 2)
+        R, tb = scene.board_pose(t)
+        n, p = cam.R @ R[:, 2], cam.R @ tb + cam.t  # board plane in the camera frame
+        z = (n @ p) / (xy @ n[:2] + n[2])
+        assert np.abs(r.depth[vv, uu] - z).max() / z.min() < 1e-5
+
+
+def _signed(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Detected minus true positions, in the detector's order or reversed (it may start from either end)."""
+    if np.linalg.norm(found[::-1] - truth, axis=1).mean() < np.linalg.norm(found - truth, axis=1).mean():
+        found = found[::-1]
+    return found - truth
 
 
 @pytest.fixture(scope="module")
@@ -117,8 +134,10 @@ def test_opencv_finds_chessboard_corners_where_the_ground_truth_puts_them(board_
         ok, corners = cv2.findChessboardCorners(gray, (board.cols, board.rows), flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
         assert ok, "the detector must find the whole board"
         corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), SUBPIX).reshape(-1, 2)
-        errs.append(_errors(corners, uv))
-    e = np.concatenate(errs)
+        errs.append(_signed(corners, uv))
+    d = np.concatenate(errs)
+    assert np.linalg.norm(d.mean(axis=0)) < 0.02, f"corners are biased by {d.mean(axis=0)} px"
+    e = np.linalg.norm(d, axis=1)
     assert np.sqrt(np.mean(e ** 2)) < 0.1 and np.median(e) < 0.1, f"rms {np.sqrt(np.mean(e ** 2)):.3f} px"
     assert np.percentile(e, 95) < 0.15 and e.max() < 0.25, f"p95 {np.percentile(e, 95):.3f} max {e.max():.3f} px"
 
@@ -131,8 +150,10 @@ def test_opencv_finds_charuco_corners_where_the_ground_truth_puts_them(board_vie
         corners, ids, _mc, _mi = detector.detectBoard(gray)
         assert ids is not None and len(ids) >= 0.7 * board.n_corners, "the detector must find most of the board"
         corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (2, 2), (-1, -1), SUBPIX).reshape(-1, 2)
-        errs.append(np.linalg.norm(corners - uv[ids.ravel()], axis=1))
-    e = np.concatenate(errs)
+        errs.append(corners - uv[ids.ravel()])
+    d = np.concatenate(errs)
+    assert np.linalg.norm(d.mean(axis=0)) < 0.02, f"corners are biased by {d.mean(axis=0)} px"
+    e = np.linalg.norm(d, axis=1)
     assert np.sqrt(np.mean(e ** 2)) < 0.1 and np.median(e) < 0.1, f"rms {np.sqrt(np.mean(e ** 2)):.3f} px"
     assert np.percentile(e, 95) < 0.2, f"p95 {np.percentile(e, 95):.3f} px"
 
