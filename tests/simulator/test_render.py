@@ -223,3 +223,26 @@ def test_bad_camera_and_time_are_clear_errors(people_scene, small_rig):
     folded = CameraModel("fisheye-ish", 640, 360, cam.scaled(640, 360).K, [-0.9, 0, 0, 0, 0])
     with pytest.raises(SimulatorError, match="distortion cannot be inverted"):
         render(people_scene, folded, 0.0)
+
+
+def test_cameras_rendering_from_threads_get_the_same_images():
+    """sim:// cameras render from their own threads; sharing one scene must not change a pixel."""
+    import threading
+
+    rig = virtual_rig(3, 192, 108)
+    alone = Scene(seed=5, people=3)
+    shared = Scene(seed=5, people=3)
+    expected = {(c.name, t): render(alone, c, t).rgb for c in rig.cameras for t in (0.1, 0.2)}
+    got = {}
+
+    def camera_thread(cam):
+        for t in (0.1, 0.2):
+            got[(cam.name, t)] = render(shared, cam, t).rgb
+
+    threads = [threading.Thread(target=camera_thread, args=(c,)) for c in rig.cameras]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert got.keys() == expected.keys()
+    assert all(np.array_equal(got[k], expected[k]) for k in expected)
