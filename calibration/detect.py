@@ -126,7 +126,7 @@ class CharucoDetector:
             return ids, pts
         square = self.board.square_size
         reach = 0.75 * square  # centres of the (up to 4) markers touching a corner are 0.71 squares away
-        keep = np.ones(len(ids), dtype=bool)
+        keep = np.ones(len(ids), dtype=bool)  # corners with no adjacent marker found stay
         mids = np.asarray(marker_ids).reshape(-1)
         known = np.array([int(m) in self._marker_xy for m in mids])
         if not known.any():
@@ -144,16 +144,16 @@ class CharucoDetector:
         def through(points):
             q = np.einsum("kij,nj->nki", H, np.c_[points, np.ones(len(points))])
             return q[..., :2] / q[..., 2:3]
-        pred = through(xy)
+        pred = through(xy)  # (corners, markers, 2)
         step = np.linalg.norm(through(xy + [square, 0.0]) - pred, axis=2)
-        for k in range(len(ids)):
-            m = near[k]
-            if not m.any():
-                continue
-            p = np.median(pred[k, m], axis=0)
-            limit = max(1.5, 0.08 * float(np.median(step[k, m])))
-            if np.linalg.norm(p - pts[k]) > limit:
-                keep[k] = False
+        has = near.any(axis=1)
+        if not has.any():
+            return ids, pts
+        with np.errstate(all="ignore"):
+            p = np.nanmedian(np.where(near[:, :, None], pred, np.nan)[has], axis=1)
+            scale = np.nanmedian(np.where(near, step, np.nan)[has], axis=1)
+        limit = np.maximum(1.5, 0.08 * scale)
+        keep[np.flatnonzero(has)] = np.linalg.norm(p - pts[has], axis=1) <= limit
         return ids[keep], pts[keep]
 
 

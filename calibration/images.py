@@ -3,9 +3,12 @@
 Two layouts are read:
   DIR/CAMNAME/*.png|jpg      one folder per camera; files with the same stem are one synchronised view
   DIR/leftNN.jpg, rightNN.jpg  a stereo pair in one folder; NN (any suffix) names the view
+An optional DIR/roles.json ({"left": CAMNAME, "right": CAMNAME}, written by `rig calibrate capture`)
+names the stereo pair when the camera names do not.
 """
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +31,7 @@ class ImageSet:
 
     root: Path
     paths: dict[str, dict[str, Path]]
+    roles: dict[str, str] = field(default_factory=dict)  # "left"/"right" -> camera name
 
     @property
     def cameras(self) -> list[str]:
@@ -82,7 +86,22 @@ def find_images(root: str | Path) -> ImageSet:
         raise CalibrationError(
             f"{root}: no calibration images (expected {root}/CAMNAME/*.png|jpg, or leftNN/rightNN images in {root})"
         )
-    return ImageSet(root, paths)
+    return ImageSet(root, paths, _read_roles(root / "roles.json", paths))
+
+
+def _read_roles(path: Path, paths: dict) -> dict[str, str]:
+    if not path.exists():
+        return {}
+    try:
+        roles = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CalibrationError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(roles, dict) or not all(k in ("left", "right") and isinstance(v, str) for k, v in roles.items()):
+        raise CalibrationError(f'{path}: expected {{"left": CAMNAME, "right": CAMNAME}}')
+    for role, name in roles.items():
+        if name not in paths:
+            raise CalibrationError(f"{path}: {role} camera '{name}' has no image folder")
+    return roles
 
 
 def read_gray(path: Path) -> np.ndarray:

@@ -93,7 +93,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     status = _status()
     detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
     status.done()
-    opts = Options(left=args.left, right=args.right, outlier_px=args.outlier_px)
+    opts = Options(left=args.left or images.roles.get("left"), right=args.right or images.roles.get("right"), outlier_px=args.outlier_px)
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
     rig = result.rig
@@ -155,6 +155,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_capture(args: argparse.Namespace) -> int:
     """Pull synchronised frame sets from the rig, keep those that add coverage, write DIR/CAMNAME/NNNN.png."""
     import dataclasses
+    import json
     import time
 
     import cv2
@@ -177,12 +178,18 @@ def cmd_capture(args: argparse.Namespace) -> int:
     detector = make_detector(board)
     # Calibration views are stills: cameras that take triggers are fired by software so that every
     # camera exposes the same instant without the trigger board; free-running ones are paired by time.
-    settings = [dataclasses.replace(c, trigger="software" if c.trigger in ("hardware", "software") else "free") for c in cfg.cameras]
+    settings = []
+    for c in cfg.cameras:
+        s = dataclasses.replace(c, trigger="software" if c.trigger in ("hardware", "software") else "free")
+        if hasattr(c, "rig"):
+            s.rig = c.rig  # the whole rig, which simulated cameras need to show the shared scene
+        settings.append(s)
     cameras = []
     status = _status()
     kept: list[dict] = []
     looked = 0
     try:
+        roles = {c.role: c.name for c in cfg.cameras if c.role in ("left", "right")}
         for s in settings:
             cameras.append(open_camera(s))
         for cam in cameras:
@@ -195,6 +202,9 @@ def cmd_capture(args: argparse.Namespace) -> int:
             verdict = selector.consider(detections)
             if verdict.keep:
                 index = len(kept)
+                if index == 0 and roles:  # tells `rig calibrate run` which cameras are the stereo pair
+                    out.mkdir(parents=True, exist_ok=True)
+                    (out / "roles.json").write_text(json.dumps(roles) + "\n")
                 for name, img in images.items():
                     path = out / name / f"{index:04d}.png"
                     path.parent.mkdir(parents=True, exist_ok=True)

@@ -107,3 +107,26 @@ def test_exit_status_from_the_console_script(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rig", "calibrate", "report", str(bad)], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("rig: error:") and str(bad) in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_roles_file_names_the_stereo_pair(tmp_path):
+    from calibration.camera import CalibrationError
+    from calibration.images import find_images
+
+    for cam in ("cam_a", "cam_b"):
+        (tmp_path / cam).mkdir()
+        cv2.imwrite(str(tmp_path / cam / "0000.png"), np.zeros((8, 8), np.uint8))
+    assert find_images(tmp_path).roles == {}
+    (tmp_path / "roles.json").write_text('{"left": "cam_b", "right": "cam_a"}')
+    assert find_images(tmp_path).roles == {"left": "cam_b", "right": "cam_a"}
+    (tmp_path / "roles.json").write_text('{"left": "cam_c"}')
+    with pytest.raises(CalibrationError, match="roles.json.*cam_c"):
+        find_images(tmp_path)
+
+
+def test_unreadable_image_is_named(tmp_path, charuco_file, capsys):
+    d = tmp_path / "imgs" / "left"
+    d.mkdir(parents=True)
+    (d / "0001.png").write_bytes(b"not a png")
+    rc, _, err = run(["calibrate", "run", "--images", str(tmp_path / "imgs"), "--board", str(charuco_file), "-o", str(tmp_path / "c.json")], capsys)
+    assert rc == 2 and "0001.png" in err and "cannot read" in err

@@ -1,0 +1,111 @@
+"""Acceptance against simulator ground truth: a six-camera 1280x720 rig, a ChArUco board carried
+through the volume, images from the simulator's renderer and sensor model, calibrated with
+`rig calibrate run` exactly as real images would be."""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.boards import CharucoSpec
+from calibration.camera import RigCalibration
+from calibration.geometry import rotation_angle_deg
+from calibration.synthetic import in_frame_of
+from rig.cli import main
+
+pytestmark = pytest.mark.slow
+
+# An A0-size board (1.155 x 0.84 m), what a rig whose cameras stand 3.6 m from the volume needs:
+# squares of ~30 px in every view, corners over a quarter of each image.
+BOARD = CharucoSpec(squares_x=11, squares_y=8, square_size=0.105, marker_size=0.078, dictionary="DICT_5X5_100")
+TIME_STEPS = 40
+TOLERANCE = {"focal_pct": 0.2, "principal_px": 1.0, "baseline_pct": 0.2, "rotation_deg": 0.05, "position_mm": 2.0}
+
+
+@pytest.fixture(scope="session")
+def sim_sequence(tmp_path_factory):
+    """DIR/CAMNAME/NNNN.png of the board moving through the volume, the board file and the true rig."""
+    sensor_mod = pytest.importorskip("simulator.sensor")
+    from simulator.rig import virtual_rig
+    from simulator.scene import Scene
+
+    root = tmp_path_factory.mktemp("sim-charuco")
+    truth = virtual_rig(6, 1280, 720)
+    scene = Scene(seed=0, people=0, board=BOARD)
+    exposure = sensor_mod.NOMINAL_EXPOSURE_S
+    for cam in truth.cameras:
+        (root / "images" / cam.name).mkdir(parents=True)
+        sensor = sensor_mod.SensorModel(scene, cam, {"motion_blur": False})
+        for k in range(TIME_STEPS):
+            t = scene.board_period * k / TIME_STEPS
+            rgb = sensor.expose(t, exposure, sensor.frame_rng(k))  # rendered, then shot and read noise
+            cv2.imwrite(str(root / "images" / cam.name / f"{k:04d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+    board_file = root / "board.toml"
+    board_file.write_text("".join(f"{k} = {json.dumps(v)}\n" for k, v in BOARD.to_dict().items()))
+    return root / "images", board_file, truth
+
+
+@pytest.fixture(scope="session")
+def sim_calibration(sim_sequence, tmp_path_factory):
+    images, board_file, truth = sim_sequence
+    out = tmp_path_factory.mktemp("sim-calib") / "calib.json"
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = main(["calibrate", "run", "--images", str(images), "--board", str(board_file), "-o", str(out), "--json"])
+    assert rc == 0
+    return json.loads(buf.getvalue()), RigCalibration.load(out), truth
+
+
+def test_six_camera_rig_matches_the_ground_truth(sim_calibration):
+    summary, calib, truth = sim_calibration
+    gt = in_frame_of(truth, "left")  # the calibration's world is the left camera
+    assert calib.names == ["left", "sup1", "sup2", "sup3", "sup4", "right"]
+    worst = dict.fromkeys(TOLERANCE, 0.0)
+    print(f"\nsimulated ChArUco, 6 x 1280x720 cameras, {TIME_STEPS} time steps; errors against the ground truth:")
+    for cam in calib.cameras:
+        g = gt[cam.name]
+        e = {
+            "focal_pct": 100 * max(abs(cam.fx / g.fx - 1), abs(cam.fy / g.fy - 1)),
+            "principal_px": float(np.hypot(cam.cx - g.cx, cam.cy - g.cy)),
+            "rotation_deg": rotation_angle_deg(cam.R, g.R),
+            "position_mm": 1000 * float(np.linalg.norm(cam.center - g.center)),
+        }
+        for k, v in e.items():
+            worst[k] = max(worst[k], v)
+        print(f"  {cam.name:>5}: focal {e['focal_pct']:.4f}%  principal point {e['principal_px']:.3f} px  "
+              f"rotation {e['rotation_deg']:.4f} deg  position {e['position_mm']:.3f} mm  "
+              f"(views {summary['views_used'][cam.name]}, RMS {summary['rms_px'][cam.name]:.3f} px)")
+    true_baseline = float(np.linalg.norm(gt["right"].center - gt["left"].center))
+    worst["baseline_pct"] = 100 * abs(summary["baseline_m"] / true_baseline - 1)
+    print(f"  baseline {summary['baseline_m'] * 1000:.2f} mm (true {true_baseline * 1000:.2f} mm, {worst['baseline_pct']:.4f}%), "
+          f"stereo RMS {summary['stereo_rms_px']:.3f} px, epipolar {summary['epipolar_rms_px']:.3f} px")
+    print("  worst: " + ", ".join(f"{k} {v:.4f} (limit {TOLERANCE[k]})" for k, v in worst.items()))
+    for k, limit in TOLERANCE.items():
+        assert worst[k] <= limit, (k, worst[k], limit)
+
+
+def test_every_camera_used_most_views_and_fits_tightly(sim_calibration):
+    summary, calib, _ = sim_calibration
+    assert all(n >= 0.8 * TIME_STEPS for n in summary["views_used"].values()), summary["views_used"]
+    assert all(r < 0.2 for r in summary["rms_px"].values()), summary["rms_px"]
+    assert summary["stereo_rms_px"] < 0.2 and summary["epipolar_rms_px"] < 0.3
+    # The file carries the measurements the report needs.
+    rep = calib.meta["report"]
+    assert rep["views_multi_camera"] >= 0.8 * TIME_STEPS
+    assert set(rep["cameras"]) == set(calib.names)
+
+
+def test_exports_of_the_six_camera_rig(sim_calibration, tmp_path, capsys):
+    _, calib, _ = sim_calibration
+    path = tmp_path / "calib.json"
+    calib.save(path)
+    for fmt in ("opencv", "easymocap", "anipose", "nerfstudio", "colmap"):
+        assert main(["calibrate", "export", str(path), "--format", fmt, "-o", str(tmp_path / fmt), "--json"]) == 0
+        files = json.loads(capsys.readouterr().out)["files"]
+        assert files and all((tmp_path / fmt / f.split("/")[-1]).exists() for f in files)
+    data = json.loads((tmp_path / "nerfstudio" / "transforms.json").read_text())
+    assert len(data["frames"]) == 6
