@@ -1,0 +1,191 @@
+"""Typed configuration of the Splat-SAP pipeline.
+
+Plain dataclasses (no torch), so the runtime and the command line can read a model's configuration
+from the ONNX file's metadata without importing torch. Sizes are (width, height) in pixels.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from typing import Any
+
+from inference.errors import InferenceError
+
+STAGES = (
+    "point_init",
+    "affine_transform",
+    "depth_init",
+    "depth_refine",
+    "colour_init",
+    "gaussian_plane",
+    "splatting",
+)
+"""The paper's per-module timing breakdown (its Table 'Time cost of our pipeline'), in run order."""
+
+SIZE_PRESETS: dict[str, dict[str, tuple[int, int]]] = {
+    # The paper's sizes: stage 1 at 512x288, stage 2 at 1024x576, rendered at 1280x720.
+    "paper": {"coarse": (512, 288), "fine": (1024, 576), "output": (1280, 720)},
+    # Half the paper's sizes: what a CPU runs in reasonable time.
+    "preview": {"coarse": (256, 144), "fine": (512, 288), "output": (640, 360)},
+    # Small enough for unit tests and quick exports.
+    "test": {"coarse": (128, 64), "fine": (256, 144), "output": (320, 180)},
+}
+
+
+@dataclass
+class Sizes:
+    coarse: tuple[int, int] = (512, 288)
+    fine: tuple[int, int] = (1024, 576)
+    output: tuple[int, int] = (1280, 720)
+
+    def __post_init__(self) -> None:
+        self.coarse = tuple(int(v) for v in self.coarse)
+        self.fine = tuple(int(v) for v in self.fine)
+        self.output = tuple(int(v) for v in self.output)
+        for name in ("coarse", "fine", "output"):
+            w, h = getattr(self, name)
+            if w <= 0 or h <= 0:
+                raise InferenceError(f"size {name}: width and height must be positive, got {w}x{h}")
+        # Stage 2 builds its cost volume at a quarter of the fine size; the backbone works on patches of 16.
+        if self.fine[0] % 4 or self.fine[1] % 4:
+            raise InferenceError(f"size fine: {self.fine[0]}x{self.fine[1]} must be a multiple of 4 in both axes")
+        if self.coarse[0] % 16 or self.coarse[1] % 16:
+            raise InferenceError(f"size coarse: {self.coarse[0]}x{self.coarse[1]} must be a multiple of 16 in both axes")
+
+    @classmethod
+    def preset(cls, name: str) -> "Sizes":
+        if name not in SIZE_PRESETS:
+            raise InferenceError(f"unknown size preset '{name}' (allowed: {', '.join(SIZE_PRESETS)})")
+        return cls(**SIZE_PRESETS[name])
+
+    def describe(self) -> dict[str, str]:
+        return {k: f"{w}x{h}" for k, (w, h) in asdict(self).items()}
+
+
+@dataclass
+class BackboneConfig:
+    kind: str = "tiny"  # tiny | oracle
+    # oracle: "metric" keeps ground-truth metres; "canonical" divides both point maps by their mean
+    # distance to the left camera, as DUSt3R/MASt3R normalise theirs.
+    oracle_scale: str = "metric"
+    patch: int = 16
+    dim: int = 192
+    heads: int = 4
+    encoder_blocks: int = 4
+    decoder_blocks: int = 4
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("tiny", "oracle"):
+            raise InferenceError(f"backbone: unknown kind '{self.kind}' (allowed: tiny, oracle)")
+        if self.oracle_scale not in ("metric", "canonical"):
+            raise InferenceError(f"backbone: oracle_scale must be metric or canonical, got '{self.oracle_scale}'")
+
+
+@dataclass
+class Stage1Config:
+    # "learned": S and T from the networks; "bypass": S = 1, T = 0 (metric point maps, e.g. the oracle).
+    affine: str = "learned"
+    attention_dim: int = 128
+    attention_heads: int = 4
+    pe_frequencies: int = 6
+    mlp_hidden: int = 128
+    feature_dim: int = 64  # channels of the convolutional encoder E_c
+    hidden_dim: int = 64  # ConvGRU state
+    iterations: int = 4
+    stride: int = 4  # the ConvGRU runs at 1/stride of the coarse size
+
+    def __post_init__(self) -> None:
+        if self.affine not in ("learned", "bypass"):
+            raise InferenceError(f"stage1: affine must be learned or bypass, got '{self.affine}'")
+
+
+@dataclass
+class DepthInitConfig:
+    radius: int = 1  # splat window half-size in fine target pixels: (2r+1)^2 pixels per point
+    front_tolerance: float = 0.02  # softness of the z-buffer, relative depth (see depth_init)
+    fill_levels: int = 6  # push-pull levels that fill pixels no point reached
+
+
+@dataclass
+class Stage2Config:
+    feature_dim: int = 16  # channels of the fine encoder E_f (at 1/4 of the fine size)
+    candidates: int = 8  # depth candidates per target ray
+    search_range: float = 0.06  # candidates span the initial depth times (1 +- search_range)
+    groups: int = 4  # group-wise correlation channels of the cost volume
+    volume_dim: int = 8  # channels of the 3D regularisation (the feature volume Phi)
+    head_dim: int = 32  # channels of the Gaussian plane heads
+    colour_alpha: float = 0.8  # P_c = alpha C + (1 - alpha) dC (the paper's alpha = 0.8)
+    gaussian_sigma: float = 0.6  # initial in-plane Gaussian size, in fine pixels
+
+
+@dataclass
+class SplatConfig:
+    window: int = 1  # candidate Gaussians per output pixel: (2w+1)^2 fine anchors around it
+    max_alpha: float = 0.99
+    # Depth order is softened over this relative depth difference: Gaussians of one surface blend
+    # by alpha, surfaces further apart composite in strict 3DGS order (0 = strict order everywhere).
+    depth_tolerance: float = 0.01
+    blur: float = 0.3  # screen-space low-pass added to each 2D covariance (px^2), as 3DGS does
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        self.background = tuple(float(v) for v in self.background)
+
+
+@dataclass
+class ModelConfig:
+    sizes: Sizes = field(default_factory=Sizes)
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    stage1: Stage1Config = field(default_factory=Stage1Config)
+    depth_init: DepthInitConfig = field(default_factory=DepthInitConfig)
+    stage2: Stage2Config = field(default_factory=Stage2Config)
+    splat: SplatConfig = field(default_factory=SplatConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "ModelConfig":
+        return _build(cls, d, "model")
+
+    @classmethod
+    def from_json(cls, text: str) -> "ModelConfig":
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InferenceError(f"model configuration is not valid JSON ({exc.msg})") from None
+        return cls.from_dict(d)
+
+    @classmethod
+    def for_backbone(cls, kind: str, sizes: Sizes | None = None, **overrides: Any) -> "ModelConfig":
+        """The default configuration of a backbone: the oracle gives metric points, so it bypasses the affine transform."""
+        cfg = cls(sizes=sizes or Sizes(), backbone=BackboneConfig(kind=kind))
+        if kind == "oracle":
+            cfg.stage1.affine = "bypass"
+        for key, value in overrides.items():
+            section, _, name = key.partition(".")
+            setattr(getattr(cfg, section), name, value)
+        return cfg
+
+
+def _build(cls, d: Any, where: str):
+    if not isinstance(d, dict):
+        raise InferenceError(f"{where}: expected an object")
+    known = {f.name: f for f in fields(cls)}
+    unknown = set(d) - set(known)
+    if unknown:
+        raise InferenceError(f"{where}: unknown keys {sorted(unknown)} (allowed: {', '.join(known)})")
+    kwargs = {}
+    defaults = cls()
+    for name, value in d.items():
+        current = getattr(defaults, name)
+        if is_dataclass(current):
+            kwargs[name] = _build(type(current), value, f"{where}.{name}")
+        elif isinstance(current, tuple):
+            kwargs[name] = tuple(value)
+        else:
+            kwargs[name] = value
+    return cls(**kwargs)

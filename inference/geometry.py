@@ -1,0 +1,149 @@
+"""Camera geometry in torch, written with ops that export to ONNX.
+
+Conventions follow calibration.camera (OpenCV): pixel centres at integer coordinates, x right, y down,
+z forward; a pose is the 4x4 world-to-camera matrix [R t; 0 1]. Batched: K (B,3,3), pose (B,4,4),
+point maps (B,3,H,W).
+
+torch.linalg.inv does not export, so inverses are closed-form: rigid transforms by transposition,
+3x3 matrices by the adjugate.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def inverse_3x3(m: torch.Tensor) -> torch.Tensor:
+    """Inverse of (..., 3, 3) matrices through the adjugate (exportable; no linalg)."""
+    a, b, c = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    d, e, f = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    g, h, i = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    co_a = e * i - f * h
+    co_b = -(d * i - f * g)
+    co_c = d * h - e * g
+    det = a * co_a + b * co_b + c * co_c
+    adj = torch.stack(
+        [
+            torch.stack([co_a, -(b * i - c * h), b * f - c * e], dim=-1),
+            torch.stack([co_b, a * i - c * g, -(a * f - c * d)], dim=-1),
+            torch.stack([co_c, -(a * h - b * g), a * e - b * d], dim=-1),
+        ],
+        dim=-2,
+    )
+    return adj / det[..., None, None]
+
+
+def invert_pose(pose: torch.Tensor) -> torch.Tensor:
+    """Inverse of rigid (..., 4, 4) transforms: [R t] -> [R^T, -R^T t]."""
+    r = pose[..., :3, :3]
+    t = pose[..., :3, 3:]
+    rt = r.transpose(-1, -2)
+    top = torch.cat([rt, -rt @ t], dim=-1)
+    bottom = pose[..., 3:, :]  # [0 0 0 1]
+    return torch.cat([top, bottom], dim=-2)
+
+
+def relative_pose(to_pose: torch.Tensor, from_pose: torch.Tensor) -> torch.Tensor:
+    """The transform taking points from camera `from` to camera `to` (both world-to-camera poses)."""
+    return to_pose @ invert_pose(from_pose)
+
+
+def camera_centre_distance(pose_a: torch.Tensor, pose_b: torch.Tensor) -> torch.Tensor:
+    """Distance between two camera centres (the baseline), shape (B,)."""
+    rel = relative_pose(pose_b, pose_a)
+    return torch.sqrt((rel[..., :3, 3] ** 2).sum(-1))
+
+
+def scale_intrinsics(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
+    """Intrinsics of the same camera resampled by (sx, sy), keeping the pixel-centre convention."""
+    scale = torch.tensor([[sx, sx, sx], [sy, sy, sy], [1.0, 1.0, 1.0]], dtype=K.dtype, device=K.device)
+    shift = torch.tensor([[0.0, 0.0, 0.5 * sx - 0.5], [0.0, 0.0, 0.5 * sy - 0.5], [0.0, 0.0, 0.0]], dtype=K.dtype, device=K.device)
+    return K * scale + shift
+
+
+def resize_intrinsics(K: torch.Tensor, from_size: tuple[int, int], to_size: tuple[int, int]) -> torch.Tensor:
+    return scale_intrinsics(K, to_size[0] / from_size[0], to_size[1] / from_size[1])
+
+
+def pixel_grid(width: int, height: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Homogeneous pixel coordinates (3, H, W): rows u, v, 1."""
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=dtype, device=device),
+        torch.arange(width, dtype=dtype, device=device),
+        indexing="ij",
+    )
+    return torch.stack([u, v, torch.ones_like(u)], dim=0)
+
+
+def pixel_rays(K: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Unit-z ray directions (B, 3, H, W) of every pixel of a pinhole camera."""
+    grid = pixel_grid(width, height, K.dtype, K.device).reshape(3, -1)
+    rays = inverse_3x3(K) @ grid  # (B, 3, H*W)
+    return rays.reshape(K.shape[0], 3, height, width)
+
+
+def unproject_depth(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Depth maps (B, 1, H, W) (z along the axis) to camera-frame point maps (B, 3, H, W)."""
+    _, _, h, w = depth.shape
+    return pixel_rays(K, w, h) * depth
+
+
+def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Apply (B, 4, 4) rigid transforms to point maps (B, 3, ...)."""
+    b = points.shape[0]
+    flat = points.reshape(b, 3, -1)
+    out = T[:, :3, :3] @ flat + T[:, :3, 3:]
+    return out.reshape(points.shape)
+
+
+def project(points: torch.Tensor, K: torch.Tensor, min_depth: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera-frame points (B, 3, ...) to pixels (B, 2, ...) and depth z (B, 1, ...)."""
+    b = points.shape[0]
+    flat = points.reshape(b, 3, -1)
+    z = flat[:, 2:3]
+    zs = torch.where(z.abs() < min_depth, torch.full_like(z, min_depth), z)
+    x = flat[:, 0:1] / zs
+    y = flat[:, 1:2] / zs
+    u = K[:, 0, 0, None, None] * x + K[:, 0, 1, None, None] * y + K[:, 0, 2, None, None]
+    v = K[:, 1, 1, None, None] * y + K[:, 1, 2, None, None]
+    uv = torch.cat([u, v], dim=1)
+    shape = points.shape[2:]
+    return uv.reshape(b, 2, *shape), z.reshape(b, 1, *shape)
+
+
+def normalise_pixels(uv: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Pixels (B, 2, H, W) to grid_sample coordinates (B, H, W, 2) (align_corners=False)."""
+    gx = (2.0 * uv[:, 0] + 1.0) / width - 1.0
+    gy = (2.0 * uv[:, 1] + 1.0) / height - 1.0
+    return torch.stack([gx, gy], dim=-1)
+
+
+def in_image(uv: torch.Tensor, z: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """1 where a projection lands inside the image in front of the camera, else 0 (float mask)."""
+    u, v = uv[:, 0:1], uv[:, 1:2]
+    inside = (u > -0.5) & (u < width - 0.5) & (v > -0.5) & (v < height - 0.5) & (z > 1e-6)
+    return inside.to(uv.dtype)
+
+
+def sample(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinearly sample (B, C, H, W) at pixels uv (B, 2, h, w) given in that image's own pixel frame."""
+    _, _, h, w = image.shape
+    grid = normalise_pixels(uv, w, h)
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=False)
+
+
+def warp_from_source(
+    source: torch.Tensor,
+    source_K: torch.Tensor,
+    target_to_source: torch.Tensor,
+    target_points: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample a source map at the projections of target-frame points (B, 3, h, w).
+
+    `source_K` is given for the source map's own size. Returns the sampled values (B, C, h, w) and
+    a validity mask (B, 1, h, w) (in front of the source camera and inside its image).
+    """
+    _, _, sh, sw = source.shape
+    pts = transform_points(target_to_source, target_points)
+    uv, z = project(pts, source_K)
+    return sample(source, uv), in_image(uv, z, sw, sh)
