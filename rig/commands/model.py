@@ -1,0 +1,220 @@
+"""`rig model`: export the Splat-SAP model to ONNX, check ONNX Runtime against torch, benchmark both.
+
+torch is imported inside the handlers only: `rig --help` and the live path never load it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+SIZES = ("preview", "paper", "test")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("model", help="export, check and benchmark the Splat-SAP model",
+                              description="The Splat-SAP free-viewpoint model: ONNX export, torch-vs-ONNX-Runtime check, per-stage benchmark.")
+    sub = p.add_subparsers(dest="model_command", metavar="SUBCOMMAND")
+    sub.required = True
+
+    e = sub.add_parser("export", help="export the model to ONNX",
+                       description="Export the pipeline to one ONNX file (opset 18+): inputs are the left and right images, "
+                                   "their intrinsics and poses, and the target intrinsics and pose; outputs the novel view and its depth.")
+    e.add_argument("--backbone", choices=("tiny", "oracle"), default="tiny",
+                   help="point-map backbone: tiny (trainable) or oracle (ground-truth depth as extra inputs) (default tiny)")
+    e.add_argument("--checkpoint", metavar="CKPT", help="trained weights (default: untrained, seeded initialisation)")
+    e.add_argument("--size", choices=SIZES, default="paper",
+                   help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: tiny (default paper; ignored with --checkpoint)")
+    e.add_argument("--fp16", action="store_true", help="also write MODEL.fp16.onnx (learned layers in float16, for GPUs)")
+    e.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or later (default 18)")
+    e.add_argument("-o", "--output", required=True, metavar="model.onnx", help="ONNX file to write")
+    e.add_argument("--json", action="store_true", help="print one JSON object with the files written")
+    e.set_defaults(func=cmd_export)
+
+    c = sub.add_parser("check", help="compare ONNX Runtime with torch on the same inputs",
+                       description="Run the exported model with ONNX Runtime and the same model in torch on the same inputs "
+                                   "and report the largest differences of the image (in [0, 1]) and the depth (metres).")
+    c.add_argument("model", metavar="model.onnx")
+    c.add_argument("--checkpoint", metavar="CKPT", help="the checkpoint it was exported from, if not at its recorded path")
+    c.add_argument("--snapshot", metavar="DIR", help="inputs from a `rig sim snapshot` folder (default: built-in synthetic inputs)")
+    c.add_argument("--left", default="left", help="source camera name in the snapshot (default left)")
+    c.add_argument("--right", default="right", help="source camera name in the snapshot (default right)")
+    c.add_argument("--target", help="target camera name in the snapshot (default: the middle camera)")
+    c.add_argument("--tolerance", type=float, default=1e-3, help="largest accepted image difference (default 1e-3)")
+    c.add_argument("--providers", help="comma-separated ONNX Runtime providers (default: best installed)")
+    c.add_argument("--json", action="store_true", help="print one JSON object with max_abs_diff_image and max_abs_diff_depth")
+    c.set_defaults(func=cmd_check)
+
+    b = sub.add_parser("bench", help="time each stage in torch eager and ONNX Runtime",
+                       description="Per-stage milliseconds in the paper's breakdown (point init, affine transform, depth init, depth refine, "
+                                   "colour init, Gaussian plane, splatting, total) for torch eager and ONNX Runtime.")
+    b.add_argument("--size", choices=SIZES, default="preview", help="sizes to run at (default preview)")
+    b.add_argument("--model", metavar="model.onnx", help="benchmark this exported model (default: export one at --size)")
+    b.add_argument("--backbone", choices=("tiny", "oracle"), default="tiny", help="backbone (default tiny)")
+    b.add_argument("--checkpoint", metavar="CKPT", help="trained weights (default: untrained)")
+    b.add_argument("--repeat", type=int, default=5, help="timed runs of each (default 5; medians are reported)")
+    b.add_argument("--threads", type=int, help="CPU threads for both torch and ONNX Runtime (default: theirs)")
+    b.add_argument("--providers", help="comma-separated ONNX Runtime providers (default: best installed)")
+    b.add_argument("--device", default="cpu", help="torch device (cpu or cuda; default cpu)")
+    b.add_argument("--json", action="store_true", help="print one JSON object: torch_ms, ort_ms (per stage and total), size, speedup")
+    b.set_defaults(func=cmd_bench)
+
+
+def _providers(text: str | None) -> list[str] | None:
+    return [p.strip() for p in text.split(",") if p.strip()] if text else None
+
+
+def _status():
+    from rig.progress import StatusLine
+
+    return StatusLine()
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from inference.checkpoint import checkpoint_record, load_checkpoint
+    from inference.config import ModelConfig, Sizes
+    from inference.errors import InferenceError
+    from inference.export import export_onnx
+    from inference.model import build_model
+    from rig.cli import emit_json
+
+    if args.opset < 18:
+        raise InferenceError(f"--opset {args.opset}: the pipeline needs opset 18 or later")
+    status = _status()
+    if args.checkpoint:
+        model = load_checkpoint(args.checkpoint)
+        if model.cfg.backbone.kind != args.backbone:
+            raise InferenceError(f"{args.checkpoint}: the checkpoint has the {model.cfg.backbone.kind} backbone, not {args.backbone}")
+        weights = checkpoint_record(args.checkpoint)
+        trained = True
+    else:
+        model = build_model(ModelConfig.for_backbone(args.backbone, Sizes.preset(args.size)))
+        weights = None
+        trained = False
+    status.update(f"exporting {args.output} ...", force=True)
+    result = export_onnx(model, args.output, fp16=args.fp16, weights=weights, opset=args.opset)
+    status.done()
+    files = [str(result.path)] + ([str(result.fp16_path)] if result.fp16_path else [])
+    info = {
+        "files": files,
+        "backbone": model.cfg.backbone.kind,
+        "sizes": model.cfg.sizes.describe(),
+        "opset": result.opset,
+        "inputs": list(result.inputs),
+        "outputs": ["image", "depth"],
+        "weights": "checkpoint" if trained else "untrained (seeded initialisation)",
+        "parameters": sum(p.numel() for p in model.parameters()),
+    }
+    if args.json:
+        emit_json(info)
+    else:
+        for f in files:
+            print(f"wrote {f}")
+        print(f"backbone {info['backbone']}, sizes {info['sizes']}, opset {info['opset']}, {info['parameters']:,} parameters, weights: {info['weights']}")
+        if not trained:
+            print("note: the weights are untrained; train a checkpoint and export it with --checkpoint for real output", file=sys.stderr)
+    return 0
+
+
+def _snapshot_inputs(folder: str, left: str, right: str, target: str | None):
+    import cv2
+    import numpy as np
+
+    from calibration.camera import RigCalibration
+    from inference.errors import InferenceError
+
+    d = Path(folder)
+    if not d.is_dir():
+        raise InferenceError(f"{d}: no such snapshot folder")
+    calib = RigCalibration.load(d / "cameras.json")
+    names = calib.names
+    if target is None:
+        others = [n for n in names if n not in (left, right)]
+        if not others:
+            raise InferenceError(f"{d}: no camera besides {left} and {right} to use as the target (pass --target)")
+        target = others[len(others) // 2]
+    frames = {}
+    for name in (left, right):
+        if name not in calib:
+            raise InferenceError(f"{d}: no camera '{name}' in cameras.json (have: {', '.join(names)})")
+        img = cv2.imread(str(d / f"{name}.png"), cv2.IMREAD_COLOR)
+        if img is None:
+            raise InferenceError(f"{d / (name + '.png')}: missing or unreadable")
+        depth_path = d / f"{name}.depth.npy"
+        depth = np.load(depth_path) if depth_path.is_file() else None
+        frames[name] = (cv2.cvtColor(img, cv2.COLOR_BGR2RGB), depth)
+    if target not in calib:
+        raise InferenceError(f"{d}: no camera '{target}' in cameras.json (have: {', '.join(names)})")
+    return calib[left], calib[right], calib[target], frames[left], frames[right]
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    from inference.checkpoint import model_from_record
+    from inference.errors import InferenceError
+    from inference.runtime import NovelViewPipeline
+    from inference.synthetic import example_inputs
+    from rig.cli import emit_json
+
+    pipe = NovelViewPipeline(args.model, providers=_providers(args.providers))
+    cfg = pipe.info.config
+    if pipe.info.precision != "fp32":
+        raise InferenceError(f"{args.model}: check the fp32 model; the {pipe.info.precision} variant differs from torch by its precision")
+    model = model_from_record(cfg, pipe.info.weights, args.checkpoint)
+    if args.snapshot:
+        lc, rc, tc, (limg, ldep), (rimg, rdep) = _snapshot_inputs(args.snapshot, args.left, args.right, args.target)
+        if pipe.info.needs_depth and (ldep is None or rdep is None):
+            raise InferenceError(f"{args.snapshot}: the oracle model needs {args.left}.depth.npy and {args.right}.depth.npy")
+        feeds = pipe.prepare(limg, rimg, lc, rc, tc, ldep, rdep)
+        source = f"snapshot {args.snapshot} ({args.left}, {args.right} -> {tc.name})"
+    else:
+        feeds = {n: a for n, a in example_inputs(cfg.sizes, pipe.info.needs_depth).arrays.items() if n in pipe.info.inputs}
+        source = "synthetic inputs"
+    image, depth = pipe.run(feeds)
+    with torch.no_grad():
+        ref_image, ref_depth = model(*[torch.from_numpy(feeds[n]) for n in model.input_names])
+    diff_image = float(np.abs(image - ref_image.numpy()).max())
+    diff_depth = float(np.abs(depth - ref_depth.numpy()).max())
+    ok = diff_image <= args.tolerance
+    info = {
+        "model": args.model,
+        "inputs": source,
+        "providers": pipe.providers,
+        "max_abs_diff_image": diff_image,
+        "max_abs_diff_depth": diff_depth,
+        "tolerance": args.tolerance,
+        "ok": ok,
+    }
+    if args.json:
+        emit_json(info)
+    else:
+        print(f"{args.model} on {source}, providers {', '.join(pipe.providers)}")
+        print(f"max |ORT - torch|: image {diff_image:.3g} (tolerance {args.tolerance:g}), depth {diff_depth:.3g} m")
+        print("OK" if ok else "MISMATCH")
+    return 0 if ok else 1
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from inference.benchmark import format_table, run_benchmark
+    from rig.cli import emit_json
+
+    status = _status()
+    result = run_benchmark(
+        size=args.size,
+        backbone=args.backbone,
+        providers=_providers(args.providers),
+        repeat=args.repeat,
+        threads=args.threads,
+        device=args.device,
+        checkpoint=args.checkpoint,
+        model_path=args.model,
+        progress=lambda text: status.update(text, force=True),
+    )
+    status.done()
+    if args.json:
+        emit_json(result)
+    else:
+        print(format_table(result))
+    return 0
