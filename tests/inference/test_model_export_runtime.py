@@ -1,0 +1,170 @@
+"""Export, ONNX Runtime parity, the torch-free runtime and the `rig model` commands."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+
+from calibration.camera import CameraModel
+from inference.errors import InferenceError
+from inference.preprocess import pinhole
+from inference.runtime import NovelViewPipeline
+from inference.synthetic import example_inputs, rig_camera
+from rig.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def run_cli(capsys, *argv) -> tuple[int, dict]:
+    rc = main(list(argv))
+    lines = capsys.readouterr().out.strip().splitlines()
+    return rc, json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
+
+
+@pytest.mark.parametrize("which", ["tiny_onnx", "oracle_onnx"])
+def test_onnx_runtime_matches_torch(which, request, capsys):
+    model = request.getfixturevalue(which)
+    rc, info = run_cli(capsys, "model", "check", str(model.path), "--json")
+    print(f"\n{model.backbone}: max |ORT - torch| image {info['max_abs_diff_image']:.2e}, depth {info['max_abs_diff_depth']:.2e} m")
+    assert rc == 0 and info["ok"]
+    assert info["max_abs_diff_image"] <= 1e-3
+    assert info["max_abs_diff_depth"] <= 1e-3
+
+
+def test_exported_graph_is_opset_18_with_the_documented_interface(tiny_onnx, oracle_onnx):
+    for exported, extra in ((tiny_onnx, []), (oracle_onnx, ["left_depth", "right_depth"])):
+        m = onnx.load(str(exported.path))
+        assert max(o.version for o in m.opset_import if o.domain in ("", "ai.onnx")) >= 18
+        names = [i.name for i in m.graph.input]
+        assert names == ["left_image", "right_image", "left_K", "right_K", "left_pose", "right_pose", "target_K", "target_pose"] + extra
+        assert [o.name for o in m.graph.output] == ["image", "depth"]
+        # Plain ONNX operators only (no custom domains): it runs on any ONNX Runtime build and TensorRT.
+        assert {n.domain for n in m.graph.node} <= {"", "ai.onnx"}
+        assert "GridSample" in {n.op_type for n in m.graph.node}
+
+
+def test_fp16_variant_keeps_float32_interface_and_geometry(tiny_onnx):
+    import onnxruntime as ort
+
+    half = tiny_onnx.path.with_name(tiny_onnx.path.stem + ".fp16.onnx")
+    m = onnx.load(str(half))
+    assert all(i.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for i in list(m.graph.input) + list(m.graph.output))
+    fp16_weights = [i for i in m.graph.initializer if i.data_type == onnx.TensorProto.FLOAT16]
+    assert len(fp16_weights) > 50
+    feeds = example_inputs(NovelViewPipeline(tiny_onnx.path).sizes, False).arrays
+    full = ort.InferenceSession(str(tiny_onnx.path), providers=["CPUExecutionProvider"]).run(None, feeds)
+    try:
+        halfs = ort.InferenceSession(str(half), providers=["CPUExecutionProvider"]).run(None, feeds)
+    except Exception as exc:  # an ONNX Runtime build without float16 CPU kernels
+        pytest.skip(f"this ONNX Runtime cannot run float16 on the CPU: {exc}")
+    diff = np.abs(halfs[0] - full[0])
+    print(f"\nfp16 vs fp32: image max {diff.max():.2e}, mean {diff.mean():.2e}")
+    assert np.percentile(diff, 99) < 0.02
+
+
+def test_runtime_renders_simulator_frames_from_camera_models(oracle_onnx, sim_frames):
+    """Distorted 640x360 frames and CameraModels in, a novel view and its metric depth out."""
+    pipe = NovelViewPipeline(oracle_onnx.path)
+    rig = sim_frames.rig
+    target = rig["sup2"]
+    view = pipe.render(sim_frames.rgb["left"], sim_frames.rgb["right"], rig["left"], rig["right"], target,
+                       sim_frames.depth["left"], sim_frames.depth["right"])
+    ow, oh = pipe.sizes.output
+    assert view.image.shape == (oh, ow, 3) and view.depth.shape == (oh, ow)
+    assert view.image_uint8().dtype == np.uint8
+    truth = sim_frames.render(pinhole(target, (ow, oh)))
+    rel = np.abs(view.depth - truth.depth) / truth.depth
+    print(f"\nruntime depth vs ground truth at {ow}x{oh}: median relative error {np.median(rel):.4f}, within 5 %: {np.mean(rel < 0.05):.3f}")
+    assert np.median(rel) < 0.02
+    # The viewpoint is an input: another target, another image, same session.
+    other = pipe.render(sim_frames.rgb["left"], sim_frames.rgb["right"], rig["left"], rig["right"], rig["sup3"],
+                        sim_frames.depth["left"], sim_frames.depth["right"])
+    assert np.abs(other.image - view.image).mean() > 0.01
+
+
+def test_runtime_reports_bad_input_clearly(oracle_onnx, tiny_onnx, tmp_path):
+    pipe = NovelViewPipeline(tiny_onnx.path)
+    left, right, target = rig_camera("left", -30, (64, 48)), rig_camera("right", 30, (64, 48)), rig_camera("t", 0, (64, 48))
+    frame = np.zeros((48, 64, 3), np.uint8)
+    with pytest.raises(InferenceError, match="left.*is 32x48, but its calibration is for 64x48"):
+        pipe.render(frame[:, :32], frame, left, right, target)
+    with pytest.raises(InferenceError, match="needs left_depth and right_depth"):
+        NovelViewPipeline(oracle_onnx.path).render(frame, frame, left, right, target)
+    with pytest.raises(InferenceError, match="no such model file"):
+        NovelViewPipeline(tmp_path / "missing.onnx")
+    foreign = tmp_path / "foreign.onnx"
+    g = onnx.helper.make_graph([onnx.helper.make_node("Identity", ["x"], ["y"])], "g",
+                               [onnx.helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+                               [onnx.helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])])
+    onnx.save(onnx.helper.make_model(g, ir_version=8, opset_imports=[onnx.helper.make_opsetid("", 18)]), foreign)
+    with pytest.raises(InferenceError, match="not a Splat-SAP model"):
+        NovelViewPipeline(foreign)
+    (tmp_path / "torn.onnx").write_bytes(b"\x08\x07garbage")
+    with pytest.raises(InferenceError, match="cannot load it"):
+        NovelViewPipeline(tmp_path / "torn.onnx")
+
+
+NO_TORCH = textwrap.dedent(
+    """
+    import importlib.abc, json, sys
+
+    class BlockTorch(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path=None, target=None):
+            if name == "torch" or name.startswith("torch."):
+                raise ImportError("torch is not installed here")
+            return None
+
+    sys.meta_path.insert(0, BlockTorch())
+    import numpy as np
+    from inference.runtime import NovelViewPipeline
+    from inference.synthetic import rig_camera, smooth_image
+
+    pipe = NovelViewPipeline(sys.argv[1])
+    rng = np.random.default_rng(0)
+    left, right = rig_camera("left", -30, (320, 180)), rig_camera("right", 30, (320, 180))
+    target = rig_camera("target", 5, (1280, 720))
+    frames = [(smooth_image(rng, (320, 180)) * 255).astype(np.uint8) for _ in range(2)]
+    view = pipe.render(frames[0], frames[1], left, right, target)
+    print(json.dumps({"torch_loaded": any(m == "torch" or m.startswith("torch.") for m in sys.modules),
+                      "shape": list(view.image.shape), "finite": bool(np.isfinite(view.image).all()),
+                      "providers": pipe.providers}))
+    """
+)
+
+
+def test_runtime_runs_with_torch_absent(tiny_onnx):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-c", NO_TORCH, str(tiny_onnx.path)], capture_output=True, text=True, env=env, cwd=REPO, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["torch_loaded"] is False
+    assert result["shape"] == [180, 320, 3] and result["finite"]
+
+
+def test_model_commands_fail_cleanly(tmp_path, capsys):
+    assert main(["model", "check", str(tmp_path / "none.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no such model file" in err
+    assert main(["model", "export", "--checkpoint", str(tmp_path / "none.pt"), "-o", str(tmp_path / "m.onnx")]) == 2
+    assert "no such checkpoint" in capsys.readouterr().err
+    assert main(["model", "export", "--opset", "17", "-o", str(tmp_path / "m.onnx")]) == 2
+    assert "opset 18" in capsys.readouterr().err
+
+
+def test_bench_reports_per_stage_times_of_both(tiny_onnx, capsys):
+    rc, info = run_cli(capsys, "model", "bench", "--model", str(tiny_onnx.path), "--repeat", "1", "--json")
+    assert rc == 0
+    stages = ["point_init", "affine_transform", "depth_init", "depth_refine", "colour_init", "gaussian_plane", "splatting", "total"]
+    for key in stages:
+        assert info["torch_ms"][key] > 0
+        assert info["ort_ms"][key] > 0
+    assert info["size"] == {"coarse": "128x64", "fine": "256x144", "output": "320x180"}
+    assert info["speedup"] == pytest.approx(info["torch_ms"]["total"] / info["ort_ms"]["total"], rel=1e-2)
+    print(f"\nbench at test size: torch {info['torch_ms']['total']:.0f} ms, ORT {info['ort_ms']['total']:.0f} ms, speedup {info['speedup']:.2f}x")
