@@ -80,7 +80,7 @@ class Sequence:
             images, depth, ts = {}, {}, {}
             for n in names:
                 rec = recs[n]
-                img = read_netpbm(self.root / rec["file"])
+                img = self.meta.camera(n).decoded(read_netpbm(self.root / rec["file"]))
                 if img.ndim == 2:
                     img = np.repeat(img[:, :, None], 3, axis=2)
                 if img.dtype == np.uint16:

@@ -138,7 +138,7 @@ class SequenceWriter:
                     self._flush_ready_rows()
 
     def _write_image(self, path: Path, frame: Frame) -> int:
-        header, pixels = encode_netpbm(frame.image)
+        header, pixels = encode_netpbm(self.entries[frame.camera].stored(frame.image))
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         try:
             _write_all(fd, header)

@@ -102,14 +102,39 @@ class CameraEntry:
     def suffix(self) -> str:
         return ".ppm" if self.channels == 3 else ".pgm"
 
+    @property
+    def bayer(self) -> bool:
+        return self.pixel_format.startswith("Bayer")
+
+    def stored(self, image: np.ndarray) -> np.ndarray:
+        """What is written for a Frame image of this camera."""
+        if self.bayer:
+            from rig.cameras.pixels import mosaic
+
+            return mosaic(image, self.pixel_format)
+        return image
+
+    def decoded(self, stored: np.ndarray) -> np.ndarray:
+        """The Frame image back from what was stored."""
+        if self.bayer:
+            from rig.cameras.pixels import demosaic
+
+            return demosaic(stored, self.pixel_format)
+        return stored
+
 
 def stored_layout(pixel_format: str) -> tuple[int, int]:
-    """(channels, bytes per sample) of the stored image for a sensor pixel format."""
-    if pixel_format == "Mono8":
+    """(channels, bytes per sample) of the stored image for a sensor pixel format.
+
+    Bayer sensors are stored as their mosaic (one sample per pixel, a third of RGB's bytes): the
+    backend's demosaic keeps every sample, so re-mosaicking the Frame recovers the sensor data
+    exactly and the reader's demosaic gives back the very same RGB image.
+    """
+    if pixel_format in ("Mono8", "BayerRG8", "BayerGR8", "BayerGB8", "BayerBG8"):
         return 1, 1
     if pixel_format == "Mono16":
         return 1, 2
-    return 3, 1  # RGB8 and Bayer (decoded to RGB by the backend)
+    return 3, 1  # RGB8
 
 
 @dataclass

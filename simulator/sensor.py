@@ -10,8 +10,10 @@ is Gaussian with `read_noise` DN of standard deviation; `shot_noise` scales the 
 Two ways to get images:
 - live: each exposure renders the scene (several renders over the exposure when motion_blur);
 - loop (`loop_frames` > 0): the first use renders that many frames once, at `loop_fps`, with their
-  motion blur; later exposures replay frame round(t * loop_fps) mod loop_frames with fresh noise,
-  fast enough for real-time tests of the capture path (the renderer is not).
+  motion blur; later exposures replay frame round(t * loop_fps) mod loop_frames, fast enough for
+  real-time tests of the capture path (the renderer is not). The noise of a replayed frame is one
+  of `noise_variants` realisations drawn at prerender (no cost per frame), or, with
+  noise_variants = 0, drawn fresh for every frame (a few ms per 1280x720 frame).
 
 Every random draw comes from the generator the caller passes, or from `frame_rng(index)`, so a
 capture is a pure function of (scene seed, sensor seed, camera, frame index).
@@ -82,7 +84,7 @@ class SensorModel:
     """
 
     def __init__(self, scene, camera: CameraModel, options: Optional[dict] = None, *, gain_db: float = 0.0,
-                 loop_frames: int = 0, loop_fps: float = 30.0, antialias: Optional[int] = None):
+                 loop_frames: int = 0, loop_fps: float = 30.0, antialias: Optional[int] = None, noise_variants: int = 0):
         try:
             self.opts = validate_options(dict(options or {}), "camera")
         except ValueError as exc:
@@ -96,6 +98,7 @@ class SensorModel:
         self.gain = 10.0 ** (gain_db / 20.0)
         self.loop_frames = int(loop_frames)
         self.loop_fps = float(loop_fps)
+        self.noise_variants = int(noise_variants)
         self.antialias = antialias
         self._seed = (int(self.opts["seed"]) * 1_000_003 + zlib.crc32(camera.name.encode())) & 0x7FFFFFFF
         self._loop: Optional[np.ndarray] = None
@@ -104,7 +107,7 @@ class SensorModel:
         self._noise_bank16: Optional[np.ndarray] = None
         self._loop_clean: Optional[np.ndarray] = None
         self._loop_sigma16: Optional[np.ndarray] = None
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # prerender draws noise under it
 
     # ---- randomness -------------------------------------------------------------------------
     def frame_rng(self, frame_index: int) -> np.random.Generator:
@@ -219,12 +222,35 @@ class SensorModel:
                 sigma16[i] = np.clip(np.sqrt(var) * 16.0 + 0.5, 0, 255).astype(np.uint8)
             self._loop, self._loop_exposure_s = frames, exposure_s
             self._loop_clean, self._loop_sigma16 = clean, sigma16
+            self._variants = None
+            if self.noise_variants > 0:
+                rng = np.random.default_rng([self._seed, 1 << 42])
+                variants = [[self._noisy(i, rng) for _ in range(self.noise_variants)] for i in range(self.loop_frames)]
+                for per_frame in variants:
+                    for img in per_frame:
+                        img.flags.writeable = False  # shared between frames: consumers must not write into it
+                self._variants = variants
 
     def _replay(self, t_mid_s: float, rng: np.random.Generator, raw: bool) -> np.ndarray:
         """A loop frame at the loop's own exposure with fresh noise, in a few vectorised uint8/int16
         passes (a few ms at 1280x720): the noise-free digital image plus its per-pixel noise sigma
         (in 1/16 DN) times a window of a standard-normal bank (in 1/16 units), saturated to uint8."""
         i = int(round(t_mid_s * self.loop_fps)) % self.loop_frames
+        if self._variants is not None:  # cheapest: one of the noise realisations drawn at prerender
+            img = self._variants[i][int(rng.integers(0, len(self._variants[i])))]
+            pattern = self.opts["bayer"]
+            if pattern:
+                mosaic = bayer_mosaic(img, pattern)
+                return mosaic if raw else demosaic(mosaic, pattern)
+            return img
+        img = self._noisy(i, rng)
+        pattern = self.opts["bayer"]
+        if pattern:
+            mosaic = bayer_mosaic(img, pattern)
+            return mosaic if raw else demosaic(mosaic, pattern)
+        return img
+
+    def _noisy(self, i: int, rng: np.random.Generator) -> np.ndarray:
         clean = self._loop_clean[i]
         n = clean.size
         with self._lock:
@@ -234,12 +260,7 @@ class SensorModel:
         off = int(rng.integers(0, self._noise_bank16.size - n))
         z = self._noise_bank16[off:off + n].reshape(clean.shape)
         noise = cv2.multiply(self._loop_sigma16[i], z, dtype=cv2.CV_16S, scale=1.0 / 256.0)
-        img = cv2.add(clean, noise, dtype=cv2.CV_8U)
-        pattern = self.opts["bayer"]
-        if pattern:
-            mosaic = bayer_mosaic(img, pattern)
-            return mosaic if raw else demosaic(mosaic, pattern)
-        return img
+        return cv2.add(clean, noise, dtype=cv2.CV_8U)
 
     def _loop_radiance(self, t_mid_s: float, exposure_s: float) -> np.ndarray:
         if self._loop is None:
@@ -281,7 +302,8 @@ class SimRig:
             self._sensors[name] = SensorModel(
                 self.scene, self.calibration[name], getattr(cfg, "sim", None) or {},
                 gain_db=float(getattr(cfg, "gain", None) or 0.0),
-                loop_frames=self.options["loop_frames"], loop_fps=self.options["loop_fps"], antialias=self._antialias)
+                loop_frames=self.options["loop_frames"], loop_fps=self.options["loop_fps"], antialias=self._antialias,
+                noise_variants=self.options["noise_variants"])
         return self._sensors[name]
 
 

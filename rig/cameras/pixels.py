@@ -39,8 +39,19 @@ def buffer_to_image(data, width: int, height: int, pixel_format: str, copy: bool
         return keep(arr.reshape(height, width, 3))
     mono = arr.reshape(height, width)
     if is_bayer(pixel_format):
-        return cv2.cvtColor(mono, _BAYER_TO_RGB[pixel_format])  # new array
+        return demosaic(mono, pixel_format)
     return keep(mono)
+
+
+def demosaic(raw: np.ndarray, pixel_format: str) -> np.ndarray:
+    """Bayer mosaic to RGB, keeping every sensor sample exactly where it was.
+
+    OpenCV treats the outermost rows and columns differently from the interior; a 2-pixel mirror
+    border (which keeps the colour phase) gives every pixel the interior treatment, so
+    `mosaic(demosaic(raw)) == raw` and a recording can store the mosaic without loss.
+    """
+    padded = cv2.copyMakeBorder(raw, 2, 2, 2, 2, cv2.BORDER_REFLECT_101)
+    return cv2.cvtColor(padded, _BAYER_TO_RGB[pixel_format])[2:-2, 2:-2].copy()
 
 
 def mosaic(rgb: np.ndarray, pixel_format: str) -> np.ndarray:

@@ -117,3 +117,21 @@ def test_writer_refuses_to_overwrite(tmp_path):
 
     with pytest.raises(StorageError, match="already holds a sequence"):
         SequenceWriter(seq_dir, CAMS)
+
+
+def test_bayer_cameras_are_stored_as_their_mosaic_and_read_back_identical(tmp_path):
+    cams = [CameraConfig(name="left", uri="sim://left", role="left", width=64, height=48, pixel_format="BayerRG8", trigger="software")]
+    cam = open_camera(cams[0])
+    cam.start()
+    cam.software_trigger()
+    frame = cam.get_frame(1.0)
+    cam.close()
+    seq_dir = tmp_path / "seq"
+    w = SequenceWriter(seq_dir, cams, calibration_file=calibration_file(tmp_path))
+    w.write(FrameSet(0, {"left": frame}, frame.host_ts_ns))
+    w.close()
+    stored = read_netpbm(seq_dir / json.loads((seq_dir / INDEX).read_text())["frames"]["left"]["file"])
+    assert stored.shape == (48, 64)  # one sample per pixel: a third of the RGB bytes
+    sample = next(Sequence(seq_dir).samples(cameras=["left"]))
+    assert np.array_equal(sample.images["left"], frame.image)
+    assert validate(seq_dir).readable
