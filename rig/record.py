@@ -84,6 +84,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                 result.sets += 1
                 if t_first is None:
                     t_first = time.monotonic()  # the take starts with its first set, after the clock warm-up
+                    cpu0 = time.process_time()
                 elapsed = time.monotonic() - t_first
                 if status is not None:
                     status.update(_status_text(result, writer, session, elapsed, out))
