@@ -2,14 +2,14 @@
 
 Every point is splatted with a fixed radius onto the (2r+1)^2 target pixels around its projection,
 with a smooth kernel k(d) = (1 - d^2/rho^2)^2 (rho = r + 1/2, so its support always lies inside the
-window) times the point's opacity. A soft z-buffer blends the contributions at each pixel with
-weights w * z^(-1/tolerance): the front surface wins, depths a few relative tolerances behind it
-vanish, points of one surface blend by their weights. Unlike a hard z-buffer this is continuous in
-the inputs (a faint splat fades out instead of switching a pixel to another surface), so float
-rounding cannot flip a pixel and ONNX Runtime agrees with torch. Pixels no point reached are
-filled by push-pull interpolation.
+window) times the point's opacity. A soft z-buffer blends the contributions at each pixel: the
+front surface wins, depths a few relative tolerances behind it fade out, points of one surface blend
+by their weights (see splat_depth). Unlike a hard z-buffer it is continuous in the inputs (a faint
+splat fades out instead of switching a pixel to another surface), so float rounding cannot flip a
+pixel and ONNX Runtime agrees with torch. Pixels no point reached are filled by push-pull
+interpolation.
 
-Everything is scatter/gather on flat tensors: exportable to ONNX (ScatterElements with reduction).
+Everything is scatter/gather on flat tensors: exportable to ONNX (ScatterElements, GatherElements).
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from inference.config import DepthInitConfig
 from inference.geometry import project, transform_points
 
-FAR = 1.0e4  # beyond any scene depth in metres, and still finite in fp16
+FRONT_RANGE = 8.0  # the soft z-buffer prefers a nearer surface by at most e^8 (in units of weight)
 
 
 @dataclass
@@ -50,7 +50,7 @@ def splat_depth(
     u0 = torch.round(u)
     v0 = torch.round(v)
     rho2 = (radius + 0.5) ** 2
-    idx_list, w_list, z_list, ok_list = [], [], [], []
+    idx_list, w_list, z_list = [], [], []
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
             px = u0 + dx
@@ -63,23 +63,24 @@ def splat_depth(
             idx_list.append(index)
             w_list.append(weight)
             z_list.append(torch.where(inside, z, torch.zeros_like(z)))
-            ok_list.append(inside)
     index = torch.cat(idx_list, dim=1)
     weight = torch.cat(w_list, dim=1)
     depth = torch.cat(z_list, dim=1)
-    # Soft z-buffer: blend weight w * z^(-1/tolerance), i.e. a softmin over log depth, evaluated
-    # against the per-pixel maximum (scatter 'amax') for numerical range. Depths a few tolerances
-    # behind the front vanish; weights fading to zero fade out of the z-buffer continuously.
-    # Entries off the image or of zero weight (transparent points, the kernel's edge) never count.
-    counts = torch.cat(ok_list, dim=1) & (weight > 0)
-    score = torch.log(weight.clamp(min=1e-30)) - torch.log(depth.clamp(min=1e-6)) / front_tolerance
-    score = torch.where(counts, score, torch.full_like(score, -FAR))
-    best = torch.full((b, h * w), -FAR, dtype=score.dtype, device=score.device)
-    best = best.scatter_reduce(1, index, score, reduce="amax", include_self=True)
-    blend = torch.exp(score - torch.gather(best, 1, index))
-    num = torch.zeros(b, h * w, dtype=depth.dtype, device=depth.device).scatter_add(1, index, blend * depth)
-    den = torch.zeros_like(num).scatter_add(1, index, blend)
-    cov = torch.zeros_like(num).scatter_add(1, index, weight)
+    # Soft z-buffer. Each pixel's reference depth is a weighted power mean leaning to the front,
+    # z_ref = (sum w z^-4 / sum w)^(-1/4); each contribution blends with w * exp(-clip(log(z/z_ref)
+    # / tolerance, +-range)): nearer surfaces win, surfaces a few tolerances behind fade out, and
+    # points of one surface blend by weight. Bounding the preference keeps a faint splat (the rim
+    # of a kernel) from overriding a well-covered surface however much nearer it is, and keeps the
+    # result smooth in the weights, so float rounding cannot swing a pixel between surfaces.
+    zc = depth.clamp(min=1e-3)
+    total = torch.zeros(b, h * w, dtype=depth.dtype, device=depth.device).scatter_add(1, index, weight)
+    inv4 = torch.zeros_like(total).scatter_add(1, index, weight * zc ** -4)
+    log_ref = -0.25 * torch.log(inv4.clamp(min=1e-30) / total.clamp(min=1e-30))
+    pref = ((torch.log(zc) - torch.gather(log_ref, 1, index)) / front_tolerance).clamp(-FRONT_RANGE, FRONT_RANGE)
+    blend = weight * torch.exp(-pref)
+    num = torch.zeros_like(total).scatter_add(1, index, blend * depth)
+    den = torch.zeros_like(total).scatter_add(1, index, blend)
+    cov = total
     raw = num / den.clamp(min=1e-12)
     return raw.reshape(b, 1, h, w), cov.reshape(b, 1, h, w)
 

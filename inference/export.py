@@ -55,7 +55,7 @@ def example_arrays(model: SplatSAP, seed: int = 0) -> dict[str, np.ndarray]:
 @contextlib.contextmanager
 def _quiet():
     """The exporter narrates every step on stdout/stderr; keep the command's own output clean."""
-    loggers = [logging.getLogger(n) for n in ("torch.onnx", "torch.export", "torch._dynamo", "torch.fx")]
+    loggers = [logging.getLogger(n) for n in ("torch.onnx", "torch.export", "torch._dynamo", "torch.fx", "torch.__trace", "torch._subclasses")]
     levels = [lg.level for lg in loggers]
     for lg in loggers:
         lg.setLevel(logging.ERROR)

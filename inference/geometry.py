@@ -119,10 +119,13 @@ def normalise_pixels(uv: torch.Tensor, width: int, height: int) -> torch.Tensor:
 
 
 def in_image(uv: torch.Tensor, z: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """1 where a projection lands inside the image in front of the camera, else 0 (float mask)."""
+    """How much a projection lies inside the image, in front of the camera: 1 inside, 0 outside,
+    a linear ramp over the border pixel (B, 1, ...). Continuous, so that float rounding of a
+    projection near the border cannot switch a pixel between sources (torch/ONNX Runtime parity)."""
     u, v = uv[:, 0:1], uv[:, 1:2]
-    inside = (u > -0.5) & (u < width - 0.5) & (v > -0.5) & (v < height - 0.5) & (z > 1e-6)
-    return inside.to(uv.dtype)
+    inside_u = torch.minimum(u + 0.5, width - 0.5 - u).clamp(0.0, 1.0)
+    inside_v = torch.minimum(v + 0.5, height - 0.5 - v).clamp(0.0, 1.0)
+    return inside_u * inside_v * (z > 1e-6).to(uv.dtype)
 
 
 def sample(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -141,7 +144,7 @@ def warp_from_source(
     """Sample a source map at the projections of target-frame points (B, 3, h, w).
 
     `source_K` is given for the source map's own size. Returns the sampled values (B, C, h, w) and
-    a validity mask (B, 1, h, w) (in front of the source camera and inside its image).
+    the visibility (B, 1, h, w) (in front of the source camera and inside its image, see in_image).
     """
     _, _, sh, sw = source.shape
     pts = transform_points(target_to_source, target_points)

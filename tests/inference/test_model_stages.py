@@ -158,7 +158,7 @@ def test_colour_comes_from_the_source_that_sees_the_point():
     fixed = RefinedDepth(d, ref.probabilities, ref.phi, ref.features_left, ref.features_right)
     out = colour(L, Rimg, t(left.K), t(right.K), tl, tr, t(target.K), fixed)
     assert out.visible_right.max() == 0
-    seen = out.visible_left.bool().expand(1, 3, 48, 64)
+    seen = (out.visible_left == 1).expand(1, 3, 48, 64)
     assert seen.float().mean() > 0.5
     assert torch.allclose(out.colour[seen], out.colour_left[seen], atol=1e-6)
     plane = GaussianPlane(cfg, (64, 48))(out, d, t(target.K))
