@@ -23,7 +23,7 @@ def acceptance_rig(rate_hz: float = 30.0) -> dict:
         cams.append({"name": name, "uri": f"sim://{name}", "role": name, "width": 64, "height": 48, "fps": rate_hz,
                      "trigger": "hardware", "exposure_us": 5000.0,
                      "sim": {"drop_rate": 0.02, "jitter_us": 50.0, "drift_ppm": drift, "clock_offset_ns": 10**12 * (i + 1), "seed": 11 + i}})
-    return {"rig": {"name": "sync-acceptance"}, "cameras": cams,
+    return {"rig": {"name": "sync-acceptance"}, "sim": {"loop_frames": 30, "people": 1}, "cameras": cams,
             "trigger": {"uri": "sim://trigger", "rate_hz": rate_hz, "sim": {"drift_ppm": 100.0, "reply_jitter_us": 200.0, "seed": 3}}}
 
 

@@ -360,9 +360,10 @@ class TriggerBoard:
             now = time.monotonic_ns()
             try:
                 port.write(data)
-            except (serial.SerialException, OSError) as exc:
-                self._drop_port(port, f"write failed: {exc}")
-                raise TriggerBoardError(f"{self.uri}: trigger board disconnected ({exc})") from None
+            except (serial.SerialException, OSError, TypeError, AttributeError, ValueError) as exc:
+                # TypeError/AttributeError/ValueError: pyserial's port after another thread closed it
+                self._drop_port(port, f"write failed: {exc or type(exc).__name__}")
+                raise TriggerBoardError(f"{self.uri}: trigger board disconnected ({exc or type(exc).__name__})") from None
             return now
 
     # --- port and threads -------------------------------------------------------------------------
@@ -420,6 +421,14 @@ class TriggerBoard:
                 partial_since = now
 
     def _supervise(self) -> None:
+        while not self._closed.is_set():
+            try:
+                self._supervise_loop()
+            except Exception as exc:  # never let the thread that reconnects die
+                self.last_error = f"supervisor: {exc!r}"
+                self._closed.wait(0.1)
+
+    def _supervise_loop(self) -> None:
         next_query = 0.0
         while not self._closed.is_set():
             if self.connected:

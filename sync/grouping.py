@@ -53,6 +53,7 @@ class CameraCounters:
     duplicates: int = 0  # a second frame for a pulse already filled
     unassigned: int = 0  # frames that fit no pulse (before the first, after the last, ambiguous)
     reanchors: int = 0  # the device-time model was rebuilt from host time
+    ambiguous_anchors: int = 0  # frame ids and arrival times disagreed on the first pulse; arrival times won
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -74,6 +75,7 @@ class _Track:
     last_pulse: Optional[int] = None
     last_frame_id: Optional[int] = None  # of the last frame assigned
     last_seen_id: Optional[int] = None  # of the last frame received
+    id_base: Optional[int] = 0  # frame id before the first exposure of this train (None: unknown)
     suspicious: int = 0
     # timed: frames not yet claimed by a set, by host exposure-start time
     timed: deque = field(default_factory=deque)
@@ -103,7 +105,8 @@ class FrameGrouper:
     max_wait_s: how long after its pulse a set waits for a camera that is not past it.
     """
 
-    ANCHOR_FRAMES = 3
+    ANCHOR_FRAMES = 3  # frames an anchor normally waits for
+    ANCHOR_PATIENCE = 8  # frames it waits for when frame ids and arrival times disagree
 
     def __init__(self, cameras: dict[str, str], rate_hz: float, clock: Optional[BoardClock] = None,
                  reference: Optional[str] = None, max_wait_s: Optional[float] = None):
@@ -174,6 +177,7 @@ class FrameGrouper:
             self._next_emit = 0
             self._sets.clear()
             for t in self.tracks.values():
+                t.id_base = t.last_seen_id  # ids of the new train count on from here
                 t.anchored = False
                 t.pairs.clear()
                 t.last_pulse = None
@@ -280,39 +284,52 @@ class FrameGrouper:
                 old = now_ns is not None and now_ns - track.pending[0].host_ts_ns > self.max_wait_ns // 2
                 if len(track.pending) < self.ANCHOR_FRAMES and not (force or old):
                     continue
-                self._anchor(track, list(track.pending)[: self.ANCHOR_FRAMES])
+                self._anchor(track, list(track.pending), decide=force or old)
+                if not track.anchored:
+                    continue
             while track.pending:
                 frame = track.pending.popleft()
                 self._assign_hardware(track, frame)
                 track.last_frame_id = frame.frame_id
 
-    def _anchor(self, track: _Track, frames: list[Frame]) -> None:
-        """Tie the camera's clock to the pulse timeline from host arrival times.
+    def _anchor(self, track: _Track, frames: list[Frame], decide: bool = True) -> None:
+        """Tie the camera's clock to the pulse timeline: which pulse did its first frame answer?
 
-        A frame arrives after its pulse fired and its exposure ended, so each frame's arrival bounds
-        its pulse index from above; the device timestamps give the pulse steps between the frames.
-        The first frame's pulse is the tightest of those bounds: the frame delivered fastest decides,
-        so one slow delivery cannot shift the anchor onto a later pulse.
+        Two bounds, with the pulse steps between the frames from their device timestamps. Arrival:
+        a frame reaches the host after its pulse fired and its exposure ended, so the latest pulse
+        before (arrival - exposure) bounds it from above; the frame delivered fastest decides, and a
+        camera that delivers within a period gets it exactly. Frame ids: the n-th exposure of a train
+        answered pulse n-1 or a later one (a trigger the camera missed pushes it later), a bound
+        from below that no delivery delay can shift. When the two meet, that is the pulse. When they
+        do not (a camera slow to deliver, or pulses it missed), more frames may close the gap; after
+        ANCHOR_PATIENCE frames the arrival bound is taken and the case counted.
         """
         tolerance_ns = min(2_000_000, int(self.period_ns / 4))
         first = frames[0]
-        k0 = None
+        upper = lower = None
         for frame in frames:
             exposure_ns = int((frame.exposure_us or 0.0) * 1000)
             board_limit = self.clock.host_to_board_us(frame.host_ts_ns - exposure_ns + tolerance_ns)
-            k_max = self._pulse_at_or_before_board(board_limit)
             steps = int(round((frame.device_ts_ns - first.device_ts_ns) / self.period_ns))
-            bound = k_max - steps
-            k0 = bound if k0 is None else min(k0, bound)
+            bound = self._pulse_at_or_before_board(board_limit) - steps
+            upper = bound if upper is None else min(upper, bound)
+            if track.id_base is not None:
+                low = frame.frame_id - track.id_base - 1 - steps
+                lower = low if lower is None else max(lower, low)
         if self._done is not None:
-            k0 = min(k0, self._done - 1)
-        if k0 < 0:
+            upper = min(upper, self._done - 1)
+        if upper < 0:
             track.counters.unassigned += 1  # exposed before the first pulse: not ours
             track.pending.popleft()
             track.last_frame_id = first.frame_id
             if track.pending:
-                self._anchor(track, list(track.pending)[: self.ANCHOR_FRAMES])
+                self._anchor(track, list(track.pending), decide)
             return
+        k0 = upper
+        if lower is not None and 0 <= lower < upper:
+            if not decide and len(frames) < self.ANCHOR_PATIENCE:
+                return  # wait for more frames
+            track.counters.ambiguous_anchors += 1
         track.anchored = True
         track.board_ref = int(self._board_time(k0))
         track.dev_ref = first.device_ts_ns
@@ -323,7 +340,7 @@ class FrameGrouper:
 
     def _assign_hardware(self, track: _Track, frame: Frame) -> None:
         if not track.anchored:
-            self._anchor(track, [frame])
+            self._anchor(track, [frame], decide=True)
             if not track.anchored:
                 return
         tolerance_ns = min(2_000_000, int(self.period_ns / 4))

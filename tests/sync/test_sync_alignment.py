@@ -42,23 +42,29 @@ def test_flash_alignment_recovers_known_clock_offsets_within_a_tenth_of_a_frame(
             cam.start()
         time.sleep(0.6)
         flashed = board.flash(150)
-        time.sleep(0.9)
+        time.sleep(0.2)
+        # the cameras render the scene live, maybe slower than real time (their timestamps stay
+        # true): read each until it has filmed well past the flash
+        flash_end = emu.flashes[0].host_end_ns
         frames = {}
-        for name, cam in cameras.items():  # the cameras buffer 64 frames: read them all after the run
-            cam.stop()
+        for name, cam in cameras.items():
             frames[name] = []
-            while True:
+            past = cam.device_time_ns(flash_end) + 5 * PERIOD_NS
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and (not frames[name] or frames[name][-1].device_ts_ns < past):
                 try:
-                    frames[name].append(cam.get_frame(timeout=0.05))
+                    frames[name].append(cam.get_frame(timeout=0.5))
                 except Exception:
-                    break
+                    pass
+        for cam in cameras.values():
+            cam.stop()
             cam.close()
     assert flashed is not None and len(emu.flashes) == 1
     on_host_ns = emu.flashes[0].host_start_ns
 
     estimates = {}
     for name, fr in frames.items():
-        assert len(fr) > 35  # 1.5 s at 30 fps
+        assert len(fr) > 20
         est = flash_in_frames(fr, duration_ns=150e6)
         truth = cameras[name].device_time_ns(on_host_ns)  # the flash onset on this camera's clock
         err = (est.onset_ns - truth) / PERIOD_NS
