@@ -7,7 +7,8 @@
         print(session.camera_stats(), session.errors())
     # leaving the block stops the train, drains the last frames, closes everything
 
-`start(pulses=N)` / `run(seconds)` give a train of a fixed length; `stop()` ends it and flushes.
+`start(pulses=N)` gives a train of a fixed length (the board says DONE: `train_done`); `stop()`
+ends a run and flushes the last sets.
 
 One thread per camera pulls frames into the grouper; a pump thread hands ready sets to
 `framesets()`/`next_set()`. Hardware-triggered cameras expose on the board's pulses (on a sim rig
@@ -156,21 +157,6 @@ class RigSession:
             self.grouper.new_epoch()
         self._trains += 1
         self.board.start(pulses)
-
-    def run(self, seconds: float) -> None:
-        """Start a train of `seconds` worth of pulses and wait for its end (sets keep flowing meanwhile)."""
-        if self.board is None:
-            self.start()
-            time.sleep(seconds)
-            return
-        count = max(1, int(round(seconds * self.config.trigger.rate_hz)))
-        self.start(count)
-        deadline = time.monotonic() + seconds + 5.0
-        while time.monotonic() < deadline:
-            if self.board.wait_done(0.2) is not None:
-                return
-            if self.board_lost and not self.board.connected:
-                continue  # the train ended with the cable; wait for the deadline or a resumed train
 
     def stop(self) -> None:
         """End the train, wait for frames in flight, stop the cameras and flush the last sets."""

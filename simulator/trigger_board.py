@@ -483,8 +483,9 @@ class TriggerBoardEmulator:
             self._finish_train_if_over()
             self._cv.notify_all()
         elif kind == "TIME":
-            # read the clock as the reply is made: parsing time then falls before the reading, the
-            # way a fast microcontroller's few microseconds do, instead of adding to the way back
+            # Read the clock as the answer is made, as a microcontroller that answers at once does:
+            # the emulator's own parsing time then falls before the reading instead of lengthening
+            # the way back (the truth stays exact either way; only the link's symmetry changes).
             self._send("TIME", n, self.clock.board_us(time.monotonic_ns()))
         elif kind == "FLASH":
             ms = int(msg["ms"])
