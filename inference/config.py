@@ -123,8 +123,8 @@ class SplatConfig:
     window: int = 1  # candidate Gaussians per output pixel: (2w+1)^2 fine anchors around it
     max_alpha: float = 0.99
     # Depth order is softened over this relative depth difference: Gaussians of one surface blend
-    # by alpha, surfaces further apart composite in strict 3DGS order (0 = strict order everywhere).
-    depth_tolerance: float = 0.01
+    # by alpha, Gaussians further apart composite in strict 3DGS order (0 = strict order everywhere).
+    depth_tolerance: float = 0.02
     blur: float = 0.3  # screen-space low-pass added to each 2D covariance (px^2), as 3DGS does
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 

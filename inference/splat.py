@@ -10,8 +10,8 @@ and composite front to back in depth order, where the order is softened over a s
 depth tolerance (see `composite`): 3DGS order between surfaces, an alpha-weighted blend within one.
 
 `PlaneSplatter` (exportable, no custom op): each output pixel considers only the (2w+1)^2
-Gaussians anchored around the nearest plane pixel (a fixed window, gathered with constant indices)
-and composites them with the pairwise soft order (K^2 small tensor ops, no sort).
+Gaussians anchored around its nearest plane pixel (a fixed window, fetched with constant-index
+row gathers) and composites them with the pairwise soft order (K^2/2 small tensor ops, no sort).
 `render_reference`: every pixel against every Gaussian, straightforward double precision.
 Given the same window rule (`window=`) the two agree; for Gaussians whose footprint lies inside the
 window the rule changes nothing, and the reference without it agrees too. With depths far apart
@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from inference.config import SplatConfig
 from inference.geometry import pixel_rays
@@ -50,8 +51,8 @@ def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
 
 
 def project_gaussians(plane: GaussianPlaneMaps, K: torch.Tensor, blur: float) -> torch.Tensor:
-    """Per-Gaussian screen-space attributes (B, N, 10): u, v, conic (a, b, c), opacity, depth, rgb."""
-    b = plane.means.shape[0]
+    """Per-Gaussian screen-space attribute maps (B, 10, H, W): u, v, conic (a, b, c), opacity, depth, rgb."""
+    b, _, h, w = plane.means.shape
     mu = plane.means.reshape(b, 3, -1)
     x, y, z = mu[:, 0], mu[:, 1], mu[:, 2]
     zs = z.clamp(min=1e-6)
@@ -69,102 +70,99 @@ def project_gaussians(plane: GaussianPlaneMaps, K: torch.Tensor, blur: float) ->
     sc = (t1 * t1).sum(-1) + blur
     det = (sa * sc - sb * sb).clamp(min=1e-12)
     opacity = plane.opacities.reshape(b, -1) * (z > 1e-6).to(z.dtype)
-    colours = plane.colours.reshape(b, 3, -1).transpose(1, 2)
-    return torch.cat([torch.stack([u, v, sc / det, -sb / det, sa / det, opacity, z], -1), colours], dim=-1)
+    attrs = torch.stack([u, v, sc / det, -sb / det, sa / det, opacity, z], 1).reshape(b, 7, h, w)
+    return torch.cat([attrs, plane.colours], dim=1)
 
 
-def window_indices(plane_size: tuple[int, int], out_size: tuple[int, int], window: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Constant gather indices (Ho*Wo*K,) of the candidate Gaussians of every output pixel, and
-    their validity (Ho*Wo, K) (0 where the window leaves the plane)."""
-    pw, ph = plane_size
-    ow, oh = out_size
-    # Output pixel centre in plane pixel coordinates, then its nearest anchor.
-    ax = torch.round((torch.arange(ow, dtype=torch.float64) + 0.5) * (pw / ow) - 0.5).to(torch.int64)
-    ay = torch.round((torch.arange(oh, dtype=torch.float64) + 0.5) * (ph / oh) - 0.5).to(torch.int64)
-    ay, ax = torch.meshgrid(ay, ax, indexing="ij")
-    idx, valid = [], []
-    for dy in range(-window, window + 1):
-        for dx in range(-window, window + 1):
-            gx = ax + dx
-            gy = ay + dy
-            ok = (gx >= 0) & (gx < pw) & (gy >= 0) & (gy < ph)
-            idx.append(torch.where(ok, gy * pw + gx, torch.zeros_like(gx)).reshape(-1))
-            valid.append(ok.reshape(-1))
-    return torch.stack(idx, dim=1).reshape(-1), torch.stack(valid, dim=1).to(torch.float32)
+def anchors(plane_len: int, out_len: int) -> torch.Tensor:
+    """The plane pixel nearest to each output pixel centre along one axis: floor((o + 1/2) s)."""
+    return torch.floor((torch.arange(out_len, dtype=torch.float64) + 0.5) * (plane_len / out_len)).to(torch.int64)
 
 
 def soft_order(z_i: torch.Tensor, z_j: torch.Tensor, tolerance: float) -> torch.Tensor:
-    """How much Gaussian j lies in front of Gaussian i: a step in z_i - z_j smoothed over a
-    relative depth `tolerance` (0 = the hard 3DGS order). soft_order(i, j) + soft_order(j, i) = 1."""
+    """How much Gaussian j lies in front of Gaussian i: 1 when z_j < z_i by more than `tolerance`
+    (relative to their mean depth), 0 when it lies that much behind, a linear ramp between
+    (tolerance 0: the hard 3DGS order). soft_order(i, j) + soft_order(j, i) = 1."""
     if tolerance <= 0:
         return (z_j < z_i).to(z_i.dtype) + 0.5 * (z_j == z_i).to(z_i.dtype)
-    return torch.sigmoid((z_i - z_j) / (0.5 * tolerance * (z_i + z_j).clamp(min=1e-6)))
+    return (0.5 + (z_i - z_j) / (tolerance * (z_i + z_j).clamp(min=1e-6))).clamp(0.0, 1.0)
 
 
-def composite(alpha: torch.Tensor, depth: torch.Tensor, colour: torch.Tensor, background: torch.Tensor, tolerance: float):
-    """Front-to-back compositing of the K samples along the last axis, in soft depth order.
+def composite(alpha: list[torch.Tensor], depth: list[torch.Tensor], colour: list[torch.Tensor], background: torch.Tensor, tolerance: float):
+    """Front-to-back compositing of K samples in soft depth order.
 
-    alpha, depth (B, P, K); colour (B, P, K, 3). Sample i is attenuated by every sample j in front
-    of it: T_i = prod_j (1 - alpha_j)^s_ij with s_ij = soft_order(z_i, z_j). The total opacity
-    1 - prod_j (1 - alpha_j) does not depend on the order, and the colour is the T-weighted mean
-    scaled by it. With depths further apart than the tolerance this is 3DGS compositing; samples
-    on one surface (nearly equal depths) blend by their alphas instead of by whichever float
-    rounding puts first, which keeps the image continuous in its inputs (so ONNX Runtime matches
-    torch) and interpolates a surface smoothly. Each pair is visited once (s_ji = 1 - s_ij).
+    alpha[k], depth[k] (B, ...); colour[k] (B, 3, ...). Sample i is attenuated by every sample j in
+    front of it: T_i = prod_j (1 - alpha_j)^s_ij with s_ij = soft_order(z_i, z_j). The total
+    opacity 1 - prod_j (1 - alpha_j) does not depend on the order, and the colour is the
+    T-weighted mean scaled by it. With depths further apart than the tolerance this is exactly 3DGS
+    compositing; samples on one surface (nearly equal depths) blend by their alphas instead of by
+    whichever float rounding puts first, which keeps the image continuous in its inputs (so ONNX
+    Runtime matches torch) and interpolates a surface smoothly. Each pair is visited once
+    (s_ji = 1 - s_ij). Returns image (B, 3, ...), depth (B, ...), opacity (B, ...).
     """
-    k = alpha.shape[-1]
-    log_keep = torch.log(1.0 - alpha)
-    zs = depth.unbind(-1)
-    lk = log_keep.unbind(-1)
-    log_t = [torch.zeros_like(zs[0]) for _ in range(k)]
+    k = len(alpha)
+    log_keep = [torch.log(1.0 - a) for a in alpha]
+    log_t = [torch.zeros_like(alpha[0]) for _ in range(k)]
     for i in range(k):
         for j in range(i + 1, k):
-            s = soft_order(zs[i], zs[j], tolerance)  # j in front of i
-            log_t[i] = log_t[i] + s * lk[j]
-            log_t[j] = log_t[j] + (1.0 - s) * lk[i]
-    weight = alpha * torch.exp(torch.stack(log_t, dim=-1))
-    wsum = weight.sum(dim=-1)
-    opacity = 1.0 - torch.exp(log_keep.sum(dim=-1))
-    mean_colour = (weight[..., None] * colour).sum(dim=2) / wsum.clamp(min=1e-12)[..., None]
-    image = mean_colour * opacity[..., None] + (1.0 - opacity[..., None]) * background
-    depth_out = (weight * depth).sum(dim=-1) / wsum.clamp(min=1e-12)
+            s = soft_order(depth[i], depth[j], tolerance)  # j in front of i
+            log_t[i] = log_t[i] + s * log_keep[j]
+            log_t[j] = log_t[j] + (1.0 - s) * log_keep[i]
+    weight = [a * torch.exp(lt) for a, lt in zip(alpha, log_t)]
+    wsum = sum(weight).clamp(min=1e-12)
+    opacity = 1.0 - torch.exp(sum(log_keep))
+    mean_colour = sum(w[:, None] * c for w, c in zip(weight, colour)) / wsum[:, None]
+    image = mean_colour * opacity[:, None] + (1.0 - opacity[:, None]) * background
+    depth_out = sum(w * z for w, z in zip(weight, depth)) / wsum
     return image, depth_out, opacity
 
 
 class PlaneSplatter(nn.Module):
-    """The exportable renderer of a Gaussian plane of `plane_size` into `out_size`."""
+    """The exportable renderer of a Gaussian plane of `plane_size` into `out_size`.
+
+    The candidate Gaussians of every output pixel are those anchored within `window` plane pixels
+    of its nearest plane pixel. All candidates are fetched at once with two row gathers of
+    constant indices (columns on the transposed maps, then rows), which ONNX Runtime runs as block
+    copies; zero padding stands for "no Gaussian" beyond the border.
+    """
 
     def __init__(self, cfg: SplatConfig, plane_size: tuple[int, int], out_size: tuple[int, int]):
         super().__init__()
         self.cfg = cfg
         self.plane_size = plane_size
         self.out_size = out_size
-        idx, valid = window_indices(plane_size, out_size, cfg.window)
-        k = (2 * cfg.window + 1) ** 2
-        self.k = k
-        self.register_buffer("index", idx, persistent=False)
-        self.register_buffer("valid", valid, persistent=False)
+        r = cfg.window
+        self.n = 2 * r + 1
+        self.k = self.n**2
+        pw, ph = plane_size
         ow, oh = out_size
+        offsets = range(-r, r + 1)
+        # Indices into the maps padded by r: the anchor plus each window offset, offset-major.
+        self.register_buffer("cols", torch.cat([anchors(pw, ow) + r + d for d in offsets]), persistent=False)
+        self.register_buffer("rows", torch.cat([anchors(ph, oh) + r + d for d in offsets]), persistent=False)
         v, u = torch.meshgrid(torch.arange(oh, dtype=torch.float32), torch.arange(ow, dtype=torch.float32), indexing="ij")
-        self.register_buffer("pixels", torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1), persistent=False)  # (P, 2)
-        self.register_buffer("background", torch.tensor(cfg.background, dtype=torch.float32), persistent=False)
+        self.register_buffer("pixels", torch.stack([u, v], dim=0)[None], persistent=False)  # (1, 2, Ho, Wo)
+        self.register_buffer("background", torch.tensor(cfg.background, dtype=torch.float32).reshape(1, 3, 1, 1), persistent=False)
 
     def forward(self, plane: GaussianPlaneMaps, K: torch.Tensor) -> Rendered:
         b = plane.means.shape[0]
         ow, oh = self.out_size
-        p = ow * oh
-        table = project_gaussians(plane, K, self.cfg.blur)  # (B, N, 10)
-        g = torch.index_select(table, 1, self.index).reshape(b, p, self.k, 10)
-        dx = self.pixels[None, :, None, 0] - g[..., 0]
-        dy = self.pixels[None, :, None, 1] - g[..., 1]
-        power = -0.5 * (g[..., 2] * dx * dx + g[..., 4] * dy * dy) - g[..., 3] * dx * dy
-        alpha = (g[..., 5] * torch.exp(power.clamp(max=0.0)) * self.valid).clamp(max=self.cfg.max_alpha)
-        image, depth, acc = composite(alpha, g[..., 6], g[..., 7:10], self.background.to(alpha.dtype), self.cfg.depth_tolerance)
-        return Rendered(
-            image.transpose(1, 2).reshape(b, 3, oh, ow),
-            depth.reshape(b, 1, oh, ow),
-            acc.reshape(b, 1, oh, ow),
-        )
+        r, n = self.cfg.window, self.n
+        attrs = F.pad(project_gaussians(plane, K, self.cfg.blur), (r, r, r, r))  # (B, 10, H + 2r, W + 2r)
+        cand = torch.index_select(attrs.transpose(2, 3), 2, self.cols).transpose(2, 3)  # (B, 10, H + 2r, n Wo)
+        cand = torch.index_select(cand, 2, self.rows).reshape(b, 10, n, oh, n, ow)
+        alpha, depth, colour = [], [], []
+        for i in range(n):
+            for j in range(n):
+                g = cand[:, :, i, :, j, :]  # (B, 10, Ho, Wo): the Gaussians at window offset (i - r, j - r)
+                du = self.pixels[:, 0] - g[:, 0]
+                dv = self.pixels[:, 1] - g[:, 1]
+                power = -0.5 * (g[:, 2] * du * du + g[:, 4] * dv * dv) - g[:, 3] * du * dv
+                alpha.append((g[:, 5] * torch.exp(power.clamp(max=0.0))).clamp(max=self.cfg.max_alpha))
+                depth.append(g[:, 6])
+                colour.append(g[:, 7:10])
+        image, depth_out, acc = composite(alpha, depth, colour, self.background.to(attrs.dtype), self.cfg.depth_tolerance)
+        return Rendered(image, depth_out[:, None], acc[:, None])
 
 
 def plane_from_depth(depth: torch.Tensor, colours: torch.Tensor, K: torch.Tensor, sigma: float = 0.6, opacity: float = 0.99) -> GaussianPlaneMaps:
@@ -222,8 +220,8 @@ def render_reference(
     v, u = torch.meshgrid(torch.arange(oh, dtype=torch.float64), torch.arange(ow, dtype=torch.float64), indexing="ij")
     pix = torch.stack([u.reshape(-1), v.reshape(-1)], -1)  # (P, 2)
     if window is not None:
-        ax = torch.round((pix[:, 0] + 0.5) * (pw / ow) - 0.5)
-        ay = torch.round((pix[:, 1] + 0.5) * (ph / oh) - 0.5)
+        ax = anchors(pw, ow).double()[pix[:, 0].long()]
+        ay = anchors(ph, oh).double()[pix[:, 1].long()]
         gy, gx = torch.meshgrid(torch.arange(ph, dtype=torch.float64), torch.arange(pw, dtype=torch.float64), indexing="ij")
         reach = ((ax[:, None] - gx.reshape(1, -1)).abs() <= window) & ((ay[:, None] - gy.reshape(1, -1)).abs() <= window)
     opac = plane.opacities.reshape(b, n).double()

@@ -11,7 +11,8 @@
   warped features and phi (Phi read at the refined depth by linear interpolation along the
   candidates) gives the blending weights w_c^i; C = sum_i w_c^i C^{i->k}.
 - `GaussianPlane`: convolutional heads h_r, h_s, h_o on the aggregated map M = Agg{f_l, f_r, phi}
-  and the position Y; the colour head gives dC and P_c = alpha C + (1 - alpha) dC (alpha = 0.8).
+  and the position Y; the colour head h_c (which also sees C) gives dC and P_c = alpha C +
+  (1 - alpha) dC (alpha = 0.8).
 
 Output layers start so that an untrained model is a sensible renderer: dC = C, in-plane Gaussians
 about `gaussian_sigma` pixels wide facing the camera, opacity ~0.99, and a flat depth distribution.
@@ -184,17 +185,15 @@ class GaussianPlane(nn.Module):
         self.fine_size = fine_size
         c = 2 * cfg.feature_dim + cfg.volume_dim
         d = cfg.head_dim
-        self.aggregate = conv_relu(c, d)
-        self.trunk = nn.Sequential(conv_relu(d + 3, d), conv_relu(d, d))
-        self.rotation = nn.Conv2d(d, 4, 3, padding=1)
-        self.scale = nn.Conv2d(d, 3, 3, padding=1)
-        self.opacity = nn.Conv2d(d, 1, 3, padding=1)
-        self.colour = nn.Sequential(conv_relu(d + 3, d), nn.Conv2d(d, 3, 3, padding=1))
-        for head in (self.rotation, self.scale, self.colour[-1]):
-            nn.init.zeros_(head.weight)
-            nn.init.zeros_(head.bias)
-        nn.init.zeros_(self.opacity.weight)
-        nn.init.constant_(self.opacity.bias, 4.6)  # sigmoid(4.6) = 0.99
+        self.aggregate = conv_relu(c, d)  # Agg{f_l, f_r, phi}
+        self.trunk = conv_relu(d + 3, d)  # with Y
+        # One 3x3 convolution for all heads h_r, h_s, h_o, h_c (4 + 3 + 1 + 3 channels); the colour
+        # head also sees C, as dC = h_c(M, Y, C).
+        self.heads = nn.Conv2d(d + 3, 11, 3, padding=1)
+        nn.init.zeros_(self.heads.weight)
+        with torch.no_grad():
+            self.heads.bias.zero_()
+            self.heads.bias[7] = 4.6  # opacity sigmoid(4.6) = 0.99
         # Gaussian extent relative to the pixel footprint: in-plane sigma pixels, thin along the ray.
         self.register_buffer("base_scale", torch.tensor([cfg.gaussian_sigma, cfg.gaussian_sigma, 0.1 * cfg.gaussian_sigma]).reshape(1, 3, 1, 1), persistent=False)
         self.register_buffer("identity", torch.tensor([1.0, 0.0, 0.0, 0.0]).reshape(1, 4, 1, 1), persistent=False)
@@ -205,15 +204,15 @@ class GaussianPlane(nn.Module):
         means = pixel_rays(target_K, fw, fh) * depth
         # Y, the Gaussian position, made scale-free by the mean depth of the view.
         ref = depth.mean(dim=(1, 2, 3), keepdim=True).clamp(min=1e-6)
-        y = means / ref
         m = self.aggregate(colours.aggregate)
-        h = self.trunk(torch.cat([m, y], dim=1))
-        q = self.rotation(h) + self.identity
+        h = self.trunk(torch.cat([m, means / ref], dim=1))
+        c = colours.colour
+        out = self.heads(torch.cat([h, c], dim=1))
+        q = out[:, 0:4] + self.identity
         q = q / torch.sqrt((q * q).sum(dim=1, keepdim=True)).clamp(min=1e-6)
         footprint = depth / target_K[:, 0, 0].reshape(b, 1, 1, 1)  # metres per fine pixel
-        scales = self.base_scale * footprint * torch.exp(self.scale(h).clamp(max=5.0))
-        opacity = torch.sigmoid(self.opacity(h))
-        c = colours.colour
-        delta_c = (c + self.colour(torch.cat([h, c], dim=1))).clamp(0.0, 1.0)
+        scales = self.base_scale * footprint * torch.exp(out[:, 4:7].clamp(max=5.0))
+        opacity = torch.sigmoid(out[:, 7:8])
+        delta_c = (c + out[:, 8:11]).clamp(0.0, 1.0)
         a = self.cfg.colour_alpha
         return GaussianPlaneMaps(means, q, scales, opacity, a * c + (1.0 - a) * delta_c)
