@@ -15,6 +15,9 @@ from rig.progress import StatusLine
 from rig.recorder import SequenceWriter
 
 
+RECORD_MAX_WAIT_S = 2.0  # how long a set waits for a late frame before it is written without it
+
+
 @dataclass
 class RecordResult:
     out: Path
@@ -72,7 +75,8 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     t0 = time.monotonic()
     t_first: Optional[float] = None
     try:
-        with RigSession(cfg) as session:
+        # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
+        with RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S) as session:
             # A board rig records a train of exactly N pulses; otherwise the session is stopped when
             # enough is recorded, and every set still in flight is written before the end.
             session.start(pulses=sets if (sets is not None and session.board is not None) else 0)

@@ -147,8 +147,9 @@ class RigSession:
             except TriggerBoardError as exc:
                 self.stop()
                 raise DeviceError(f"trigger board {self.config.trigger.uri}: {exc}") from None
-        elif any(c.trigger == "software" for c in self.config.cameras):
+        elif self.config.camera(self.grouper.reference).trigger == "software":
             self._spawn(self._software_clock, "software-clock")
+        # else: software cameras follow the free-running reference camera's frames (_camera_loop)
 
     def _start_train(self, pulses: int) -> None:
         self.train_pulses = pulses
@@ -169,10 +170,12 @@ class RigSession:
                 self.board.wait_done(1.0)
             except TriggerBoardError:
                 pass
-        # frames still on their way: exposure + delivery of the last pulses
+        # frames still on their way: wait until every fired pulse has its set (complete, or given up
+        # on by the grouper's own patience), so a busy host does not cut the last sets short
         settle = max(0.2, max((c.exposure_us or 5000.0) for c in self.config.cameras) * 1e-6 * 2 + 0.1)
-        deadline = time.monotonic() + settle
-        while time.monotonic() < deadline:
+        deadline = time.monotonic() + settle + self.grouper.max_wait_ns / 1e9
+        time.sleep(settle / 2)
+        while time.monotonic() < deadline and not self.grouper.settled():
             time.sleep(0.02)
         self._running.clear()
         self._wake.set()
@@ -294,6 +297,8 @@ class RigSession:
                 return
             self.frames_delivered[name] += 1
             self.grouper.add_frame(frame)
+            if self._follow_reference and name == self.grouper.reference:
+                self._soft_triggers.put(None)  # software cameras expose right after the reference frame
             self._wake.set()
 
     def _pump(self) -> None:
@@ -316,8 +321,13 @@ class RigSession:
                 except DeviceError:
                     pass  # a lost camera is reported by its frame loop
 
+    @property
+    def _follow_reference(self) -> bool:
+        """No trigger board and a free-running reference camera: it paces the software triggers."""
+        return self.board is None and self.config.camera(self.grouper.reference).trigger == "free"
+
     def _software_clock(self) -> None:
-        """No trigger board: software triggers at the reference camera's frame rate."""
+        """No trigger board, software-triggered reference camera: triggers at its frame rate."""
         period = 1.0 / self.config.camera(self.grouper.reference).fps
         next_t = time.monotonic()
         while self._running.is_set():

@@ -217,6 +217,11 @@ class FrameGrouper:
             self._emit_ready(now_ns, flush=False, out=out)
         return out
 
+    def settled(self) -> bool:
+        """Every pulse known to have fired has been emitted as a set."""
+        with self._lock:
+            return self._next_emit > self._max_pulse
+
     def flush(self) -> list[FrameSet]:
         """Every remaining set of pulses known to have fired (end of run)."""
         out: list[FrameSet] = []
