@@ -14,7 +14,8 @@ One thread per camera pulls frames into the grouper; a pump thread hands ready s
 `framesets()`/`next_set()`. Hardware-triggered cameras expose on the board's pulses (on a sim rig
 the emulated board drives the sim cameras' trigger inputs); software-triggered cameras get a
 software trigger per pulse; free-running cameras are grouped by host time. Without a trigger board
-the first camera (the `left` one if any) sets the instants.
+the first camera (the `left` one if any) sets the instants, and software-triggered cameras are fired
+on each of its frames (or at its frame rate when it is software-triggered itself).
 
 When the trigger board goes away mid-run the session says so (an event in `events`, and
 `board_lost`), keeps every set already grouped, and goes on emitting the sets of pulses that had

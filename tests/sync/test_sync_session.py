@@ -150,13 +150,16 @@ def test_a_rig_without_a_trigger_board_groups_by_the_left_camera():
     for s in steady:
         if s["right"] is not None:  # exposures within half a period (20 ms) of each other
             assert abs(s["right"].host_ts_ns - s["left"].host_ts_ns) <= 20_000_000 + 5_000_000
-    assert stats["skew_us"]["max"] <= 20_000
+    # each camera within half a period (20 ms) of the reference, so two of them within a period
+    assert stats["skew_us"]["max"] <= 40_000
     # the cameras' relative phase depends on when each started; clear of the half-period boundary
     # every set has both
     phase = np.median([s["right"].host_ts_ns - s["left"].host_ts_ns for s in steady if s["right"] is not None])
     if abs(phase) < 0.35 * 40e6:
         assert sum(s["right"] is not None for s in steady) >= len(steady) - 1
-    soft = [s["soft"] for s in steady if s["soft"] is not None]
+    soft = [s for s in steady if s["soft"] is not None]
     assert len(soft) >= 0.8 * len(steady)  # software triggers at the left camera's rate
+    for s in soft:
+        assert abs(s["soft"].host_ts_ns - s["left"].host_ts_ns) <= 20_000_000 + 5_000_000
     report = sync_check(cfg, 1.0)
     assert report["clock_residual_us"] is None and report["mismatched_sets"] is None and report["drift_ppm"] is None
