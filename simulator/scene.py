@@ -16,7 +16,7 @@ import numpy as np
 
 from calibration.boards import BoardSpec, ChessboardSpec, CharucoSpec
 from simulator.errors import SimulatorError
-from simulator.people import MOTIONS, PersonSpec, person_ground, person_primitives
+from simulator.people import MOTIONS, PersonSpec, _rot_x, _rot_y, _rot_z, person_ground, person_primitives
 from simulator.primitives import BoardFace, Box, Capsule, Ellipsoid, Primitive, Room
 from simulator.textures import AtlasBuilder, board_texture, fabric_texture, hair_texture, plank_texture, skin_texture, speckle_texture, wall_texture
 
@@ -49,21 +49,6 @@ def check_time(t: float) -> float:
     if not math.isfinite(t) or t < 0:
         raise SimulatorError(f"time must be a finite number of seconds >= 0, got {t}")
     return t
-
-
-def _rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class Scene:
