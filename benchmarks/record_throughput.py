@@ -91,7 +91,7 @@ def main() -> int:
     try:
         rng = np.random.default_rng(0)
         images = [rng.integers(0, 256, (H, W, 3), dtype=np.uint8) for _ in range(8)]
-        disk = disk_write_speed(folder)
+        disk_runs = [disk_write_speed(folder)]
         frame_mb = (W * H * 3) / 1e6
         trials = []
         best = None
@@ -106,12 +106,15 @@ def main() -> int:
                 break
             best = r
             rate *= 1.15
+        disk_runs.append(disk_write_speed(folder))  # again after the trials: the disk's speed varies
+        disk = max(disk_runs)
         disk_sets = disk / (2 * frame_mb)
         result = {
             "frame": f"{W}x{H} RGB8 x 2 cameras",
             "best_sustained_sets_per_s": best["rate"] if best else 0.0,
             "best_mb_per_s": best["mb_per_s"] if best else 0.0,
             "disk_write_mb_per_s": disk,
+            "disk_write_runs_mb_per_s": disk_runs,
             "disk_limit_sets_per_s": disk_sets,
             "ratio": (best["rate"] / disk_sets) if best else 0.0,
             "trials": trials,
@@ -119,7 +122,7 @@ def main() -> int:
         if args.json:
             print(json.dumps(result))
         else:
-            print(f"disk sequential write: {disk:.0f} MB/s = {disk_sets:.1f} sets/s of 2 x {W}x{H} RGB")
+            print(f"disk sequential write: {disk:.0f} MB/s (best of {', '.join(f'{d:.0f}' for d in disk_runs)}) = {disk_sets:.1f} sets/s of 2 x {W}x{H} RGB")
             print(f"recorder: {result['best_sustained_sets_per_s']:.1f} sets/s sustained without loss "
                   f"({result['best_mb_per_s']:.0f} MB/s), {100 * result['ratio']:.0f}% of the disk's limit")
     finally:
