@@ -55,8 +55,11 @@ def splat_depth(
         for dx in range(-radius, radius + 1):
             px = u0 + dx
             py = v0 + dy
-            d2 = (px - u) ** 2 + (py - v) ** 2
-            k = (1.0 - d2 / rho2).clamp(min=0.0) ** 2
+            du = px - u
+            dv = py - v
+            d2 = du * du + dv * dv
+            e = (1.0 - d2 / rho2).clamp(min=0.0)
+            k = e * e
             inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1) & (z > 1e-6)
             weight = torch.where(inside, alpha * k, torch.zeros_like(k))
             index = torch.where(inside, py * w + px, torch.zeros_like(px)).to(torch.int64)
@@ -74,7 +77,8 @@ def splat_depth(
     # result smooth in the weights, so float rounding cannot swing a pixel between surfaces.
     zc = depth.clamp(min=1e-3)
     total = torch.zeros(b, h * w, dtype=depth.dtype, device=depth.device).scatter_add(1, index, weight)
-    inv4 = torch.zeros_like(total).scatter_add(1, index, weight * zc ** -4)
+    inv2 = 1.0 / (zc * zc)
+    inv4 = torch.zeros_like(total).scatter_add(1, index, weight * (inv2 * inv2))
     log_ref = -0.25 * torch.log(inv4.clamp(min=1e-30) / total.clamp(min=1e-30))
     pref = ((torch.log(zc) - torch.gather(log_ref, 1, index)) / front_tolerance).clamp(-FRONT_RANGE, FRONT_RANGE)
     blend = weight * torch.exp(-pref)

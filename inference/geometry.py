@@ -5,7 +5,10 @@ z forward; a pose is the 4x4 world-to-camera matrix [R t; 0 1]. Batched: K (B,3,
 point maps (B,3,H,W).
 
 torch.linalg.inv does not export, so inverses are closed-form: rigid transforms by transposition,
-3x3 matrices by the adjugate.
+3x3 matrices by the adjugate. Small matrix products are written as elementwise multiply-adds in a
+fixed order rather than matmuls: then torch and ONNX Runtime compute the same floats bit for bit
+(BLAS kernels sum in their own orders), which matters where a result is sensitive to the last bits
+of a projection (the rim of a splat kernel).
 """
 from __future__ import annotations
 
@@ -33,19 +36,32 @@ def inverse_3x3(m: torch.Tensor) -> torch.Tensor:
     return adj / det[..., None, None]
 
 
+def matmul_small(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a @ b for small matrices (..., n, k) @ (..., k, m) as k elementwise multiply-adds in order."""
+    out = a[..., :, 0:1] * b[..., 0:1, :]
+    for i in range(1, a.shape[-1]):
+        out = out + a[..., :, i : i + 1] * b[..., i : i + 1, :]
+    return out
+
+
 def invert_pose(pose: torch.Tensor) -> torch.Tensor:
     """Inverse of rigid (..., 4, 4) transforms: [R t] -> [R^T, -R^T t]."""
     r = pose[..., :3, :3]
     t = pose[..., :3, 3:]
     rt = r.transpose(-1, -2)
-    top = torch.cat([rt, -rt @ t], dim=-1)
+    top = torch.cat([rt, -matmul_small(rt, t)], dim=-1)
     bottom = pose[..., 3:, :]  # [0 0 0 1]
     return torch.cat([top, bottom], dim=-2)
 
 
+def compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The rigid transform a after b, (..., 4, 4)."""
+    return matmul_small(a, b)
+
+
 def relative_pose(to_pose: torch.Tensor, from_pose: torch.Tensor) -> torch.Tensor:
     """The transform taking points from camera `from` to camera `to` (both world-to-camera poses)."""
-    return to_pose @ invert_pose(from_pose)
+    return compose(to_pose, invert_pose(from_pose))
 
 
 def camera_centre_distance(pose_a: torch.Tensor, pose_b: torch.Tensor) -> torch.Tensor:
@@ -77,9 +93,9 @@ def pixel_grid(width: int, height: int, dtype=torch.float32, device=None) -> tor
 
 def pixel_rays(K: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """Unit-z ray directions (B, 3, H, W) of every pixel of a pinhole camera."""
-    grid = pixel_grid(width, height, K.dtype, K.device).reshape(3, -1)
-    rays = inverse_3x3(K) @ grid  # (B, 3, H*W)
-    return rays.reshape(K.shape[0], 3, height, width)
+    grid = pixel_grid(width, height, K.dtype, K.device)
+    ki = inverse_3x3(K)[..., None, None]  # (B, 3, 3, 1, 1)
+    return ki[:, :, 0] * grid[0] + ki[:, :, 1] * grid[1] + ki[:, :, 2] * grid[2]  # (B, 3, H, W)
 
 
 def unproject_depth(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
@@ -91,8 +107,9 @@ def unproject_depth(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply (B, 4, 4) rigid transforms to point maps (B, 3, ...)."""
     b = points.shape[0]
-    flat = points.reshape(b, 3, -1)
-    out = T[:, :3, :3] @ flat + T[:, :3, 3:]
+    flat = points.reshape(b, 1, 3, -1)
+    m = T[:, :3, :, None]  # (B, 3, 4, 1)
+    out = m[:, :, 0] * flat[:, :, 0] + m[:, :, 1] * flat[:, :, 1] + m[:, :, 2] * flat[:, :, 2] + m[:, :, 3]
     return out.reshape(points.shape)
 
 

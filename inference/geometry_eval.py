@@ -18,6 +18,7 @@ import torch
 
 from calibration.camera import CameraModel
 from inference.config import ModelConfig, Sizes
+from inference.geometry import relative_pose
 from inference.metrics import covisibility, depth_agreement, psnr
 from inference.model import build_model
 from inference.preprocess import InputPreparer, intrinsics, pinhole
@@ -91,11 +92,8 @@ def evaluate_geometry(sizes: Sizes, left: View, right: View, target_fine: View, 
 
 
 def _target_to_sources(inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    from inference.geometry import invert_pose
-
     left_pose, right_pose, target_pose = inputs[4], inputs[5], inputs[7]
-    inv_target = invert_pose(target_pose)
-    return left_pose @ inv_target, right_pose @ inv_target
+    return relative_pose(left_pose, target_pose), relative_pose(right_pose, target_pose)
 
 
 def target_views(camera: CameraModel, sizes: Sizes) -> tuple[CameraModel, CameraModel]:

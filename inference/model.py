@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from inference.backbone import build_backbone, confidence_to_opacity
 from inference.config import STAGES, ModelConfig
 from inference.depth_init import DepthInit
-from inference.geometry import invert_pose, resize_intrinsics
+from inference.geometry import relative_pose, resize_intrinsics
 from inference.splat import PlaneSplatter
 from inference.stage1 import AffineTransform
 from inference.stage2 import ColourInit, DepthRefine, GaussianPlane
@@ -88,11 +88,10 @@ class SplatSAP(nn.Module):
         """The forward pass, returning every intermediate (for tests and training)."""
         s = self.cfg.sizes
         cw, ch = s.coarse
-        inv_left = invert_pose(left_pose)
-        right_to_left = left_pose @ invert_pose(right_pose)
-        left_to_target = target_pose @ inv_left
-        target_to_left = left_pose @ invert_pose(target_pose)
-        target_to_right = right_pose @ invert_pose(target_pose)
+        right_to_left = relative_pose(left_pose, right_pose)
+        left_to_target = relative_pose(target_pose, left_pose)
+        target_to_left = relative_pose(left_pose, target_pose)
+        target_to_right = relative_pose(right_pose, target_pose)
         target_K_fine = resize_intrinsics(target_K, s.output, s.fine)
 
         with self._stage("point_init"):

@@ -48,7 +48,8 @@ def register(subparsers) -> None:
     b = sub.add_parser("bench", help="time each stage in torch eager and ONNX Runtime",
                        description="Per-stage milliseconds in the paper's breakdown (point init, affine transform, depth init, depth refine, "
                                    "colour init, Gaussian plane, splatting, total) for torch eager and ONNX Runtime.")
-    b.add_argument("--size", choices=SIZES, default="preview", help="sizes to run at (default preview)")
+    b.add_argument("--size", default="preview",
+                   help="size preset(s), comma-separated: preview, paper, test (default preview; e.g. preview,paper)")
     b.add_argument("--model", metavar="model.onnx", help="benchmark this exported model (default: export one at --size)")
     b.add_argument("--backbone", choices=("tiny", "oracle"), default="tiny", help="backbone (default tiny)")
     b.add_argument("--checkpoint", metavar="CKPT", help="trained weights (default: untrained)")
@@ -198,23 +199,35 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from inference.benchmark import format_table, run_benchmark
+    from inference.errors import InferenceError
     from rig.cli import emit_json
 
+    sizes = [x.strip() for x in args.size.split(",") if x.strip()]
+    bad = [x for x in sizes if x not in SIZES]
+    if bad or not sizes:
+        raise InferenceError(f"--size {args.size}: unknown size {', '.join(bad) or '(none)'} (allowed: {', '.join(SIZES)})")
+    if args.model:
+        sizes = sizes[:1]  # the model's own sizes
     status = _status()
-    result = run_benchmark(
-        size=args.size,
-        backbone=args.backbone,
-        providers=_providers(args.providers),
-        repeat=args.repeat,
-        threads=args.threads,
-        device=args.device,
-        checkpoint=args.checkpoint,
-        model_path=args.model,
-        progress=lambda text: status.update(text, force=True),
-    )
+    runs = []
+    for size in sizes:
+        runs.append(
+            run_benchmark(
+                size=size,
+                backbone=args.backbone,
+                providers=_providers(args.providers),
+                repeat=args.repeat,
+                threads=args.threads,
+                device=args.device,
+                checkpoint=args.checkpoint,
+                model_path=args.model,
+                progress=lambda text, size=size: status.update(f"{size}: {text}", force=True),
+            )
+        )
     status.done()
     if args.json:
-        emit_json(result)
+        # The first size's figures at the top level; every size's under "runs".
+        emit_json({**runs[0], "runs": runs} if len(runs) > 1 else runs[0])
     else:
-        print(format_table(result))
+        print("\n\n".join(format_table(r) for r in runs))
     return 0
