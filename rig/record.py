@@ -134,12 +134,17 @@ def _status_text(result: RecordResult, writer: SequenceWriter, session, elapsed:
     return f"{elapsed:6.1f} s  {result.sets} sets  {rate:5.1f} sets/s  drops {drops}  {mbps:6.1f} MB/s  {free:6.1f} GB free"
 
 
+def _stop_on_sigterm(signum, frame) -> None:
+    """`kill` (SIGTERM) ends a take like Ctrl-C: every set already written stays valid."""
+    raise KeyboardInterrupt
+
+
 def record_rig(args) -> int:
     from rig.cli import emit_json
 
     cfg = load_config(args.config)
     status = StatusLine(sys.stderr)
-    signal.signal(signal.SIGTERM, lambda *a: (_ for _ in ()).throw(KeyboardInterrupt()))
+    signal.signal(signal.SIGTERM, _stop_on_sigterm)
     result = record(cfg, args.out, seconds=args.seconds, sets=args.sets, status=status)
     status.done()
     d = result.to_dict()
