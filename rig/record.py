@@ -74,9 +74,11 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     cpu0 = time.process_time()
     t0 = time.monotonic()
     t_first: Optional[float] = None
+    session = None
     try:
         # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
-        with RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S) as session:
+        session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S)
+        with session:
             # A board rig records a train of exactly N pulses; otherwise the session is stopped when
             # enough is recorded, and every set still in flight is written before the end.
             session.start(pulses=sets if (sets is not None and session.board is not None) else 0)
@@ -99,7 +101,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
             result.errors.extend(session.errors())
     except KeyboardInterrupt:
         result.stopped_by = "interrupt"
-        session_stats = {}
+        session_stats = session.camera_stats() if session is not None else {}
     finally:
         writer.close()
     result.seconds = time.monotonic() - (t_first if t_first is not None else t0)

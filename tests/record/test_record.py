@@ -127,3 +127,21 @@ def test_simulator_take_reads_back_with_exact_ground_truth(tmp_path):
         return 10 * np.log10(255.0**2 / np.mean((a.astype(float) - b.astype(float)) ** 2))
 
     assert psnr(s.images["right"], render(take._scene, cam, t).rgb) > psnr(s.images["right"], render(take._scene, cam, t + 0.4).rgb) + 3
+
+
+def test_sigterm_ends_a_take_cleanly_and_reports_it(tmp_path):
+    seq = tmp_path / "seq"
+    proc = subprocess.Popen([sys.executable, "-m", "rig", "record", "-c", str(rig_file(tmp_path)), "-o", str(seq),
+                             "--seconds", "60", "--json"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 40
+    while not ((seq / INDEX).exists() and len(rows(seq)) >= 20):
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.05)
+    proc.terminate()
+    stdout, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 0, stderr
+    out = json.loads(stdout)
+    assert out["stopped_by"] == "interrupt" and out["sets"] >= 20
+    assert all(n >= 0 for n in out["frames_lost"].values()) and set(out["frames_lost"]) == {"left", "right"}
+    v = validate(seq)
+    assert v.readable and v.sets == out["sets"]
