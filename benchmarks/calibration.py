@@ -24,11 +24,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration.boards import CharucoSpec, ChessboardSpec  # noqa: E402
+from calibration.compare import describe, errors_against_truth  # noqa: E402
 from calibration.detect import make_detector  # noqa: E402
-from calibration.geometry import rotation_angle_deg  # noqa: E402
 from calibration.images import DetectionSet  # noqa: E402
 from calibration.solve import calibrate_rig  # noqa: E402
-from calibration.synthetic import arc_rig, board_poses, in_frame_of, observe, warp_board  # noqa: E402
+from calibration.synthetic import arc_rig, board_poses, observe, warp_board  # noqa: E402
 
 CHARUCO = CharucoSpec(11, 8, 0.105, 0.078, "DICT_5X5_100")  # A0 size
 CHESSBOARD = ChessboardSpec(9, 6, 0.06)
@@ -81,20 +81,6 @@ def time_detection(board, images):
     return stats, found
 
 
-def errors_against(truth, result):
-    gt = in_frame_of(truth, result.left)
-    worst = {"focal_pct": 0.0, "principal_px": 0.0, "rotation_deg": 0.0, "position_mm": 0.0}
-    for cam in result.rig.cameras:
-        g = gt[cam.name]
-        worst["focal_pct"] = max(worst["focal_pct"], 100 * abs(cam.fx / g.fx - 1), 100 * abs(cam.fy / g.fy - 1))
-        worst["principal_px"] = max(worst["principal_px"], float(np.hypot(cam.cx - g.cx, cam.cy - g.cy)))
-        worst["rotation_deg"] = max(worst["rotation_deg"], rotation_angle_deg(cam.R, g.R))
-        worst["position_mm"] = max(worst["position_mm"], 1000 * float(np.linalg.norm(cam.center - g.center)))
-    base = float(np.linalg.norm(gt[result.right].center - gt[result.left].center))
-    worst["baseline_pct"] = 100 * abs(result.rig.meta["baseline_m"] / base - 1)
-    return {k: round(v, 4) for k, v in worst.items()}
-
-
 def time_solve(detections: DetectionSet, truth):
     t0 = time.perf_counter()
     result = calibrate_rig(detections, CHARUCO)
@@ -106,7 +92,7 @@ def time_solve(detections: DetectionSet, truth):
         "corners": sum(len(c) for per in detections.corners.values() for c in per.values()),
         "seconds": round(seconds, 3),
         "rms_px": result.rig.meta["rms_px"],
-        "worst_error": errors_against(truth, result),
+        "worst_error": {k: round(v, 4) for k, v in errors_against_truth(result.rig, truth).worst.items()},
     }
 
 
@@ -153,9 +139,7 @@ def main() -> int:
     s = results["solve"]
     print(f"solve: {s['cameras']} cameras x {s['views']} views ({s['camera_views']} camera views, {s['corners']} corners): "
           f"{s['seconds']:.2f} s ({s['source']})")
-    w = s["worst_error"]
-    print(f"accuracy, worst camera: focal {w['focal_pct']:.4f}%, principal point {w['principal_px']:.3f} px, rotation "
-          f"{w['rotation_deg']:.4f} deg, position {w['position_mm']:.3f} mm, baseline {w['baseline_pct']:.4f}%")
+    print(f"accuracy, worst camera: {describe(s['worst_error'])}")
     return 0
 
 

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from inference.config import Sizes  # noqa: E402
-from inference.geometry_eval import View, evaluate_geometry, target_views  # noqa: E402
+from inference.evaluate.geometry import View, evaluate_geometry, target_views  # noqa: E402
 from simulator.render import render  # noqa: E402
 from simulator.rig import virtual_rig  # noqa: E402
 from simulator.scene import Scene  # noqa: E402

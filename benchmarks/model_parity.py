@@ -23,7 +23,7 @@ import torch  # noqa: E402
 
 from inference.config import ModelConfig, Sizes  # noqa: E402
 from inference.export import example_arrays, export_onnx  # noqa: E402
-from inference.model import build_model  # noqa: E402
+from inference.model.pipeline import build_model  # noqa: E402
 from inference.runtime import open_session  # noqa: E402
 
 

@@ -27,8 +27,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rig.recorder import SequenceWriter  # noqa: E402
-from rig.sequence import validate  # noqa: E402
+from rig.storage.recorder import SequenceWriter  # noqa: E402
+from rig.storage.validate import validate  # noqa: E402
 from sync.frames import Frame, FrameSet  # noqa: E402
 
 W, H = 1920, 1080

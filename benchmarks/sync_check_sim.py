@@ -13,8 +13,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from rig.capture.sync_check import sync_check  # noqa: E402
 from rig.config import parse_config  # noqa: E402
-from rig.sync_check import sync_check  # noqa: E402
 
 
 def acceptance_rig(rate_hz: float = 30.0) -> dict:

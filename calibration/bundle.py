@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.geometry import project_rad_tan, rodrigues, rotation_vector
+from calibration.uncertainty import parameter_std
 
 N_INTR = 9
 N_LOCAL = N_INTR + 6 + 6
@@ -69,7 +70,10 @@ class Solution:
     residuals: np.ndarray  # (M, 2) pixels, in the problem's corner order
     iterations: int
     converged: bool
-    intrinsics_std: np.ndarray  # (C, 9) one-sigma uncertainty (0 where held fixed)
+    # (C, 9) one-sigma uncertainty; NaN where it is not known: a slot held fixed (not estimated), or one
+    # the covariance could not be computed for (`std_unknown_reason` says why). Never a stand-in 0.
+    intrinsics_std: np.ndarray
+    std_unknown_reason: str | None = None
 
     def rms(self, mask: np.ndarray | None = None) -> float:
         r = self.residuals if mask is None else self.residuals[mask]
@@ -277,17 +281,13 @@ def solve(
             converged = True
             break
 
-    std = np.zeros(C * N_INTR)
-    if H is not None and len(r) * 2 > Pr:
-        sigma2 = cost / (2 * len(r) - Pr)
-        try:
-            cov_diag = np.diag(np.linalg.inv(H)) * sigma2
-            full = np.zeros(P)
-            full[free] = np.sqrt(np.clip(cov_diag, 0, None))
-            std = full[: C * N_INTR]
-        except np.linalg.LinAlgError:
-            pass
+    H, _ = normal_equations(state, r)  # at the solution, not at the last iterate before it
+    front = C * N_INTR + C * 6  # intrinsics and camera poses; the board poses after them are marginalised
+    std_front, why = parameter_std(H, cost, 2 * len(r), n_front=int(free[:front].sum()))
+    std = np.full(front, np.nan)
+    std[free[:front]] = std_front
     unweighted = np.empty_like(r)
     unweighted[order] = r / sw
     intr, cams, views = state.vectors()
-    return Solution(intr, cams, views, unweighted, it, converged, std.reshape(C, N_INTR))
+    return Solution(intr, cams, views, unweighted, it, converged, std[: C * N_INTR].reshape(C, N_INTR), why)
+

@@ -17,10 +17,12 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from common.errors import ReportedError
+
 SCHEMA_VERSION = 1
 
 
-class CalibrationError(Exception):
+class CalibrationError(ReportedError):
     """A calibration input or file is unusable; the message says which and why."""
 
     exit_code = 2

@@ -35,9 +35,15 @@ def rotation_vector(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Angle of the rotation that takes Ra to Rb, in degrees."""
-    c = (np.trace(np.asarray(Ra).T @ np.asarray(Rb)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle of the rotation that takes Ra to Rb, in degrees.
+
+    From both the sine (the skew part) and the cosine (the trace): arccos of the trace alone cannot
+    tell angles below about 1e-6 degrees from 0, which hides how exact a calibration is.
+    """
+    D = np.asarray(Ra).T @ np.asarray(Rb)
+    s = 0.5 * np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
+    c = (np.trace(D) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(s, c)))
 
 
 def project_rad_tan(intr: np.ndarray, Xc: np.ndarray) -> np.ndarray:

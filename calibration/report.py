@@ -1,20 +1,23 @@
 """Calibration quality report: reprojection error per camera and per view, board coverage of each image,
-the stereo pair's epipolar error after rectification, and warnings when the result should not be trusted.
+the stereo pair's epipolar error after rectification, the intrinsics' uncertainty, and warnings when
+the result should not be trusted.
 
-`build_report` measures a fresh calibration (it needs the corners); the report is stored in the
-calibration file's metadata, and `format_report` prints it again from the file alone.
+`build_report` measures a fresh calibration (it needs the corners); `summary_meta` stores it, with the
+headline figures, in the calibration file's metadata, and `format_report` prints it again from the file
+alone. An uncertainty the adjustment could not compute is null in the report and 'unknown' in print,
+never 0.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+import datetime as _dt
+from typing import Any
 
 import cv2
 import numpy as np
 
+from calibration.boards import BoardSpec
 from calibration.camera import CameraModel, RigCalibration
-
-if TYPE_CHECKING:
-    from calibration.solve import CalibrationResult
+from calibration.result import CalibrationResult
 
 COVERAGE_GRID = (8, 6)  # cells across, down
 MIN_GOOD_VIEWS = 10
@@ -22,6 +25,7 @@ MIN_COVERAGE = 0.6
 MAX_GOOD_RMS_PX = 1.0
 MAX_GOOD_EPIPOLAR_PX = 0.5
 MIN_STEREO_VIEWS = 5
+MAX_FOCAL_STD_PCT = 1.0  # a focal length whose one-sigma uncertainty is above this share of it is not trusted
 _REGIONS = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
 
 
@@ -113,7 +117,12 @@ def _r(x: float | None, n: int = 4):
     return None if x is None or not np.isfinite(x) else round(float(x), n)
 
 
-def build_report(result: "CalibrationResult") -> dict[str, Any]:
+def _significant(x: float, digits: int = 3):
+    """Rounded to significant digits, not decimals: a small but known uncertainty must not print as 0."""
+    return None if x is None or not np.isfinite(x) else float(f"{float(x):.{digits}g}")
+
+
+def build_report(result: CalibrationResult) -> dict[str, Any]:
     obs = result.observations
     rig = result.rig
     names = obs.cameras
@@ -152,7 +161,7 @@ def build_report(result: "CalibrationResult") -> dict[str, Any]:
             "cx": _r(cam.cx, 3),
             "cy": _r(cam.cy, 3),
             "dist": [round(float(x), 6) for x in cam.dist],
-            "std": {"fx": _r(std[0]), "fy": _r(std[1]), "cx": _r(std[2]), "cy": _r(std[3])},
+            "std": {k: _significant(std[i]) for i, k in enumerate(("fx", "fy", "cx", "cy"))},
             "center_m": [round(float(x), 5) for x in cam.center],
             "rms_px": rms_px[name],
             "rms_single_camera_px": _r(result.intrinsics[name].rms),
@@ -177,6 +186,18 @@ def build_report(result: "CalibrationResult") -> dict[str, Any]:
             warnings.append(f"camera '{name}': reprojection RMS {rms_px[name]:.2f} px is high (above {MAX_GOOD_RMS_PX} px)")
         if result.intrinsics[name].fix_k3:
             warnings.append(f"camera '{name}': too few views to estimate k3; it was held at 0")
+        std_of = per_camera[name]["std"]
+        unknown = [k for k, v in std_of.items() if v is None]
+        if unknown:
+            why = result.solution.std_unknown_reason or "the adjustment's covariance is not defined for them"
+            warnings.append(f"camera '{name}': the uncertainty of {', '.join(unknown)} is unknown ({why})")
+        loose = [k for k in ("fx", "fy") if std_of[k] is not None and std_of[k] > MAX_FOCAL_STD_PCT / 100 * per_camera[name][k]]
+        if loose:
+            warnings.append(
+                f"camera '{name}': its focal length is poorly determined ("
+                + ", ".join(f"{k} {per_camera[name][k]:.1f} +- {std_of[k]:.3g} px" for k in loose)
+                + "); show the board at more varied tilts and distances"
+            )
 
     shared_views = [v for v, cams in per_view.items() if len(cams) >= 2]
     report: dict[str, Any] = {
@@ -233,6 +254,23 @@ def build_report(result: "CalibrationResult") -> dict[str, Any]:
     return report
 
 
+def summary_meta(result: CalibrationResult, board: BoardSpec) -> dict[str, Any]:
+    """The file's metadata: board, date, per-camera RMS and views, stereo RMS, baseline, rejections, report."""
+    report = build_report(result)
+    return {
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "board": board.to_dict(),
+        "stereo_pair": {"left": result.left, "right": result.right},
+        "rms_px": report["rms_px"],
+        "stereo_rms_px": report["stereo_rms_px"],
+        "baseline_m": report["baseline_m"],
+        "views_used": report["views_used"],
+        "views": len(result.observations.views),
+        "rejected": [r.to_dict() for r in result.rejected],
+        "report": report,
+    }
+
+
 def format_report(calib: RigCalibration) -> str:
     """Human-readable report of a calibration file (measurements when the file carries them)."""
     meta = calib.meta
@@ -262,6 +300,11 @@ def format_report(calib: RigCalibration) -> str:
             lines.append(f"baseline {a.name}-{b.name}: {np.linalg.norm(b.center - a.center) * 1000:.2f} mm")
         lines.append("(this file carries no measurements: reprojection errors and coverage come from `rig calibrate run`)")
         return "\n".join(lines)
+    lines.append("")
+    lines.append("one-sigma uncertainty of the intrinsics (px; 'unknown' where the adjustment could not compute it):")
+    for name, c in rep["cameras"].items():
+        std = c.get("std") or {}
+        lines.append(f"  {name:<10} " + "  ".join(f"{k} {_std(std.get(k))}" for k in ("fx", "fy", "cx", "cy")))
     st = rep.get("stereo")
     if st:
         lines.append("")
@@ -303,3 +346,7 @@ def format_report(calib: RigCalibration) -> str:
 
 def _fmt(x) -> str:
     return "-" if x is None else f"{x:.3f}"
+
+
+def _std(x) -> str:
+    return "unknown" if x is None else f"{x:.3g}"

@@ -9,9 +9,8 @@
 """
 from __future__ import annotations
 
-import datetime as _dt
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import cv2
@@ -21,8 +20,16 @@ from calibration import bundle
 from calibration.boards import BoardSpec
 from calibration.camera import CalibrationError, CameraModel, RigCalibration
 from calibration.detect import Corners
-from calibration.geometry import compose, invert_pose, robust_mean_pose, rodrigues, rotation_vector
+from calibration.geometry import (
+    compose,
+    invert_pose,
+    robust_mean_pose,
+    rodrigues,
+    rotation_vector,
+)
 from calibration.images import DetectionSet
+from calibration.report import summary_meta
+from calibration.result import CalibrationResult, CameraIntrinsics, Observations, Rejection
 
 MIN_VIEWS_PER_CAMERA = 4
 # Below this many views k3 is not observable enough to estimate; it stays 0.
@@ -38,56 +45,6 @@ class Options:
     fix_k3: bool | None = None  # None: fix k3 for cameras with fewer than MIN_VIEWS_FOR_K3 views
     max_rounds: int = 5  # bundle adjustment + rejection rounds
     reweight: bool = True  # weight each camera view by its measured corner noise
-
-
-@dataclass
-class Rejection:
-    camera: str
-    view: str
-    stage: str  # "intrinsics" | "joint"
-    rms_px: float
-    reason: str
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"camera": self.camera, "view": self.view, "stage": self.stage, "rms_px": round(self.rms_px, 4), "reason": self.reason}
-
-
-@dataclass
-class CameraIntrinsics:
-    K: np.ndarray
-    dist: np.ndarray
-    rms: float
-    view_rms: dict[str, float]
-    poses: dict[str, tuple[np.ndarray, np.ndarray]]  # view -> board-to-camera (R, t)
-    fix_k3: bool
-
-
-@dataclass
-class Observations:
-    """The corners used in the final adjustment and their residuals, for the report."""
-
-    cameras: list[str]
-    views: list[str]
-    cam_idx: np.ndarray
-    view_idx: np.ndarray
-    ids: np.ndarray
-    uv: np.ndarray
-    residuals: np.ndarray
-
-
-@dataclass
-class CalibrationResult:
-    rig: RigCalibration
-    left: str
-    right: str | None
-    observations: Observations
-    intrinsics: dict[str, CameraIntrinsics]
-    rejected: list[Rejection]
-    stereo_init: dict[str, Any] | None
-    solution: bundle.Solution
-    image_size: dict[str, tuple[int, int]]
-    images_seen: dict[str, int] = field(default_factory=dict)
-    corners_rejected: dict[str, int] = field(default_factory=dict)  # single corners dropped, per camera
 
 
 def natural_key(s: str):
@@ -357,22 +314,3 @@ def calibrate_rig(
                                {c: int(n) for c, n in zip(order, corners_rejected)})
     rig.meta.update(summary_meta(result, board))
     return result
-
-
-def summary_meta(result: CalibrationResult, board: BoardSpec) -> dict[str, Any]:
-    """The file's metadata: board, date, per-camera RMS and views, stereo RMS, baseline, rejections, report."""
-    from calibration.report import build_report
-
-    report = build_report(result)
-    return {
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "board": board.to_dict(),
-        "stereo_pair": {"left": result.left, "right": result.right},
-        "rms_px": report["rms_px"],
-        "stereo_rms_px": report["stereo_rms_px"],
-        "baseline_m": report["baseline_m"],
-        "views_used": report["views_used"],
-        "views": len(result.observations.views),
-        "rejected": [r.to_dict() for r in result.rejected],
-        "report": report,
-    }

@@ -69,17 +69,6 @@ def observe(rig: RigCalibration, board: BoardSpec, poses, noise_px: float = 0.1,
     return DetectionSet(sizes, corners, {c.name: len(poses) for c in rig.cameras})
 
 
-def in_frame_of(rig: RigCalibration, ref: str) -> RigCalibration:
-    """The rig re-expressed with camera `ref` at the origin (X_ref = R_ref X + t_ref)."""
-    r = rig[ref]
-    out = []
-    for c in rig.cameras:
-        R = c.R @ r.R.T
-        t = c.t - R @ r.t
-        out.append(c.with_pose(R, t))
-    return RigCalibration(out, dict(rig.meta))
-
-
 def warp_board(board: BoardSpec, quad, size=(1280, 720), ppm: float = 1000.0, supersample: int = 4):
     """The board's printable image seen through the homography that puts its square grid's corners at
     `quad` (4 pixel positions, clockwise from the grid's top-left), antialiased by supersampling.

@@ -25,9 +25,9 @@ import torch
 from inference.config import SIZE_PRESETS, STAGES, ModelConfig, Sizes
 from inference.errors import InferenceError
 from inference.export import export_onnx, stage_of
-from inference.model import build_model
+from inference.model.pipeline import build_model
 from inference.runtime import available_providers, open_session
-from inference.synthetic import example_inputs
+from inference.runtime.synthetic import example_inputs
 
 # The paper's Table "Time cost of our pipeline" (RTX 3090, PyTorch, paper sizes).
 PAPER_MS = {
@@ -117,7 +117,7 @@ def run_benchmark(
     chosen = available_providers(providers)
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         if model_path is not None:
-            from inference.checkpoint import model_from_record
+            from inference.model.checkpoint import model_from_record
             from inference.runtime import read_model_info
 
             path = Path(model_path)
@@ -187,7 +187,7 @@ def _model_for(size: str, backbone: str, checkpoint: str | None):
     sizes = Sizes.preset(size)
     if not checkpoint:
         return build_model(ModelConfig.for_backbone(backbone, sizes)), None
-    from inference.checkpoint import checkpoint_record, load_checkpoint
+    from inference.model.checkpoint import checkpoint_record, load_checkpoint
 
     model = load_checkpoint(checkpoint)
     if model.cfg.sizes != sizes:

@@ -1,5 +1,6 @@
 """Errors of the model pipeline (export, runtime)."""
+from common.errors import ReportedError
 
 
-class InferenceError(Exception):
+class InferenceError(ReportedError):
     exit_code = 2

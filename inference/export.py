@@ -12,7 +12,7 @@ everything they need without torch:
     splat_sap.inputs     comma-separated input names, in order
     splat_sap.outputs    comma-separated output names
     splat_sap.precision  fp32 | fp16
-    splat_sap.weights    where the weights came from (JSON, see inference.checkpoint)
+    splat_sap.weights    where the weights came from (JSON, see inference.model.checkpoint)
 """
 from __future__ import annotations
 
@@ -28,11 +28,12 @@ import numpy as np
 import onnx
 import torch
 
-from inference.checkpoint import seed_record
+from common.files import atomic_path
 from inference.config import STAGES
 from inference.errors import InferenceError
-from inference.model import OUTPUT_NAMES, SplatSAP
-from inference.synthetic import example_inputs
+from inference.model.checkpoint import seed_record
+from inference.model.pipeline import OUTPUT_NAMES, SplatSAP
+from inference.runtime.synthetic import example_inputs
 
 FORMAT_VERSION = "1"
 OPSET = 18
@@ -191,7 +192,10 @@ def export_onnx(
     path = Path(path)
     if path.suffix != ".onnx":
         raise InferenceError(f"{path}: the output file name must end in .onnx")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # checked before the export, which takes a while
+        raise InferenceError(f"{path.parent}: cannot create the output folder ({exc.strerror or exc})") from None
     model = model.eval()
     arrays = example_arrays(model, seed)
     names = model.input_names
@@ -247,11 +251,17 @@ def _fold_constants(model) -> None:
 
 
 def _save(proto: onnx.ModelProto, path: Path) -> None:
-    """Write atomically so that a failed export never leaves a torn model behind."""
-    tmp = path.with_name(path.name + ".tmp")
+    """Write atomically so that a failed export never leaves a torn model behind.
+
+    The model is one self-contained file (the exporter runs with external_data=False, and none is
+    written here). Were external data ever needed, its file name would have to be given from the
+    final name (location=path.name + ".data"): onnx records it relative to the model's folder,
+    which the rename keeps, but a name derived from the temporary would dangle after the rename,
+    and the data file itself would not be written atomically. The temporary keeps the .onnx
+    suffix, from which onnx.save_model picks the protobuf format.
+    """
     try:
-        onnx.save_model(proto, str(tmp))
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            onnx.save_model(proto, str(tmp), save_as_external_data=False)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise InferenceError(f"{path}: cannot write ({exc.strerror})") from None
+        raise InferenceError(f"{path}: cannot write ({exc.strerror or exc})") from None

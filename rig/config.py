@@ -239,10 +239,10 @@ def parse_config(data: dict, path: Optional[Path] = None) -> RigConfig:
 
 def _check_sim_options(where: str, table: dict, kind: str) -> None:
     """Simulator options are validated by the simulator, which owns their meaning."""
-    from simulator.options import validate_options
+    from rig.cameras.sim import check_options
 
     try:
-        validate_options(table, kind)
+        check_options(table, kind)
     except ValueError as exc:
         raise ConfigError(f"{where}.{exc}") from None
 

@@ -3,9 +3,10 @@
 `exit_code` is what the CLI exits with: 2 for bad input (a config, a URI, a file), 1 for a device or
 I/O failure during work.
 """
+from common.errors import ReportedError
 
 
-class RigError(Exception):
+class RigError(ReportedError):
     exit_code = 1
 
 

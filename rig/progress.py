@@ -1,18 +1,41 @@
-"""A one-line status display on a terminal; silent when the stream is not a terminal."""
+"""What a long command shows on a terminal while it works: a status line, and a progress bar for a
+step with a known length. Both are silent when the stream is not a terminal (piped, redirected to
+a file, captured by a test), so machine-read output stays clean.
+
+Drawing is left to `rich` (terminal width, cursor handling, redraw in place); rich is imported only
+when there is a terminal to draw on.
+"""
 from __future__ import annotations
 
 import sys
 import time
-from typing import TextIO
+from typing import Any, Optional, TextIO
+
+
+def _is_terminal(stream: TextIO) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+def _console(stream: TextIO) -> Any:
+    from rich.console import Console
+
+    # the terminal test is ours (isatty, as always); rich must not second-guess it from the environment
+    return Console(file=stream, force_terminal=True, highlight=False, markup=False)
 
 
 class StatusLine:
+    """One line, redrawn in place: `update(text)` as often as wanted (redraws at most every
+    `min_interval` s unless `force`), `done(text)` to leave the last text on its own line."""
+
     def __init__(self, stream: TextIO | None = None, min_interval: float = 0.2):
         self.stream = stream or sys.stderr
-        self.enabled = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.enabled = _is_terminal(self.stream)
         self.min_interval = min_interval
         self._last = 0.0
-        self._width = 0
+        self._live: Any = None
 
     def update(self, text: str, force: bool = False) -> None:
         if not self.enabled:
@@ -21,15 +44,66 @@ class StatusLine:
         if not force and now - self._last < self.min_interval:
             return
         self._last = now
-        pad = max(0, self._width - len(text))
-        self.stream.write("\r" + text + " " * pad)
-        self.stream.flush()
-        self._width = len(text)
+        from rich.text import Text
+
+        line = Text(text, no_wrap=True, overflow="ellipsis")  # one line, whatever the terminal's width
+        if self._live is None:
+            from rich.live import Live
+
+            # no redirection of sys.stdout/stderr: commands print their results after done()
+            self._live = Live(line, console=_console(self.stream), auto_refresh=False, transient=False,
+                              redirect_stdout=False, redirect_stderr=False)
+            self._live.start(refresh=True)
+        else:
+            self._live.update(line, refresh=True)
 
     def done(self, text: str | None = None) -> None:
         if not self.enabled:
             return
         if text is not None:
             self.update(text, force=True)
-        self.stream.write("\n")
-        self.stream.flush()
+        if self._live is not None:
+            self._live.stop()  # leaves the last text and moves to the next line
+            self._live = None
+
+
+class ProgressBar:
+    """A bar for a step of known length, e.g. rendering N frames: `update(done, total)`.
+
+    It appears at the first update (a step that turns out to have nothing to do, such as a loop
+    found in the cache, shows nothing) and vanishes when closed. A context manager:
+
+        with ProgressBar("left: pre-rendering") as bar:
+            work(progress=bar.update)
+    """
+
+    def __init__(self, description: str, stream: TextIO | None = None):
+        self.description = description
+        self.stream = stream or sys.stderr
+        self.enabled = _is_terminal(self.stream)
+        self._progress: Any = None
+        self._task: Optional[int] = None
+
+    def update(self, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        if self._progress is None:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+            self._progress = Progress(TextColumn(self.description, markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                                      TextColumn("eta"), TimeRemainingColumn(), console=_console(self.stream),
+                                      auto_refresh=False, transient=True, redirect_stdout=False, redirect_stderr=False)
+            self._progress.start()
+            self._task = self._progress.add_task(self.description, total=total)
+        self._progress.update(self._task, completed=done, total=total, refresh=True)
+
+    def close(self) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+    def __enter__(self) -> "ProgressBar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,5 +1,6 @@
 """Errors of the simulator."""
+from common.errors import ReportedError
 
 
-class SimulatorError(Exception):
+class SimulatorError(ReportedError):
     exit_code = 2

@@ -16,9 +16,6 @@ How it stays fast in numpy:
 """
 from __future__ import annotations
 
-import math
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Optional
 
@@ -28,13 +25,12 @@ import numpy as np
 from calibration.camera import CameraModel
 from simulator.errors import SimulatorError
 from simulator.primitives import camera_batches
+from simulator.rays import NEAR, camera_rays, check_camera
 from simulator.scene import Scene, check_time
+from simulator.shading import SHADOW_RADIUS, Shader
 
-NEAR = 0.01  # metres: nothing closer to the camera is drawn
 DEFAULT_ANTIALIAS = 3
 DEFAULT_PSF = 0.5  # pixels: Gaussian sigma of the lens blur (real lenses are never perfectly sharp)
-SHADOW_STRENGTH = 0.45
-SHADOW_RADIUS = 0.75  # metres: extent of a person's contact shadow on the floor
 
 
 @dataclass
@@ -50,260 +46,6 @@ class Render:
     labels: list
     radiance: np.ndarray
     normals: Optional[np.ndarray] = None
-
-
-# ---- camera rays ---------------------------------------------------------------------------------
-
-def check_camera(camera: CameraModel) -> None:
-    """Raise SimulatorError for a camera the renderer cannot use."""
-    if not isinstance(camera, CameraModel):
-        raise SimulatorError(f"expected a CameraModel, got {type(camera).__name__}")
-    if camera.width <= 0 or camera.height <= 0:
-        raise SimulatorError(f"camera {camera.name}: image size must be positive, got {camera.width}x{camera.height}")
-    if not np.all(np.isfinite(camera.K)) or camera.fx <= 0 or camera.fy <= 0:
-        raise SimulatorError(f"camera {camera.name}: focal lengths must be positive and finite, got fx={camera.fx} fy={camera.fy}")
-    if not (np.all(np.isfinite(camera.dist)) and np.all(np.isfinite(camera.R)) and np.all(np.isfinite(camera.t))):
-        raise SimulatorError(f"camera {camera.name}: distortion and pose must be finite")
-    if not np.allclose(camera.R @ camera.R.T, np.eye(3), atol=1e-6) or np.linalg.det(camera.R) < 0:
-        raise SimulatorError(f"camera {camera.name}: R is not a rotation matrix")
-
-
-def _distortion_jacobian(cam: CameraModel, x: np.ndarray, y: np.ndarray):
-    d = np.zeros(5)
-    d[: min(5, cam.dist.size)] = cam.dist[:5]
-    k1, k2, p1, p2, k3 = d
-    r2 = x * x + y * y
-    rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    g = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d(rad)/d(r2)
-    a = rad + 2 * x * x * g + 2 * p1 * y + 6 * p2 * x
-    b = 2 * x * y * g + 2 * p1 * x + 2 * p2 * y
-    d_ = rad + 2 * y * y * g + 6 * p1 * y + 2 * p2 * x
-    return a, b, b, d_
-
-
-class CameraRays:
-    """Undistorted ray directions of every pixel centre of one camera, and their ranges."""
-
-    def __init__(self, cam: CameraModel):
-        H, W = cam.height, cam.width
-        u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-        yd = (v - cam.cy) / cam.fy
-        xd = (u - cam.cx - cam.K[0, 1] * yd) / cam.fx
-        xy = np.stack([xd, yd], axis=-1)
-        if cam.has_distortion:
-            # Newton's method on the distortion polynomial: every ray exact to ~1e-12.
-            for it in range(30):
-                dxy = cam.distort_normalized(xy)
-                ex, ey = dxy[..., 0] - xd, dxy[..., 1] - yd
-                if it >= 3 and max(np.abs(ex).max(), np.abs(ey).max()) < 1e-13:
-                    break
-                a, b, c, d = _distortion_jacobian(cam, xy[..., 0], xy[..., 1])
-                det = a * d - b * c
-                xy[..., 0] -= (d * ex - b * ey) / det
-                xy[..., 1] -= (a * ey - c * ex) / det
-            res = np.abs(cam.distort_normalized(xy) - np.stack([xd, yd], axis=-1)).max()
-            if not np.isfinite(res) or res * max(cam.fx, cam.fy) > 1e-6:
-                raise SimulatorError(f"camera {cam.name}: the distortion cannot be inverted over the image "
-                                     f"(residual {res * max(cam.fx, cam.fy):.2g} px); it folds over inside the frame")
-        self.width, self.height = W, H
-        self.X = np.ascontiguousarray(xy[..., 0], dtype=np.float32)
-        self.Y = np.ascontiguousarray(xy[..., 1], dtype=np.float32)
-        self.Xf, self.Yf = self.X.ravel(), self.Y.ravel()
-        self.col_min = self.X.min(axis=0).astype(np.float64)
-        self.col_max = self.X.max(axis=0).astype(np.float64)
-        self.row_min = self.Y.min(axis=1).astype(np.float64)
-        self.row_max = self.Y.max(axis=1).astype(np.float64)
-        self.monotonic = all(np.all(np.diff(a) >= 0) for a in (self.col_min, self.col_max, self.row_min, self.row_max))
-        self.f = math.sqrt(cam.fx * cam.fy)
-
-    def _span(self, lo, hi, a0, a1):
-        """Index ranges [i0, i1) of the entries whose [a0, a1] range meets [lo, hi]."""
-        if self.monotonic:
-            return np.searchsorted(a1, lo, "left"), np.searchsorted(a0, hi, "right")
-        i0 = np.zeros(lo.shape, np.int64)
-        i1 = np.zeros(lo.shape, np.int64)
-        for n in range(lo.size):
-            hit = np.flatnonzero((a1 >= lo[n]) & (a0 <= hi[n]))
-            if hit.size:
-                i0[n], i1[n] = hit[0], hit[-1] + 1
-        return i0, i1
-
-    def boxes(self, batch) -> np.ndarray:
-        """Pixel rectangles (n, 4): v0, v1, u0, u1 (ends exclusive) holding every pixel whose ray can
-        meet each primitive of the batch; empty rectangles (v0 >= v1) where none can."""
-        return self.sphere_boxes(batch.sphere_c, batch.sphere_r, batch.sphere_j, len(batch.ks))
-
-    def sphere_boxes(self, c, r, j, n) -> np.ndarray:
-        """As `boxes`, for n objects each enclosed by the camera-frame spheres (c[i], r[i]) with j[i]
-        naming the object."""
-        c = np.asarray(c, dtype=np.float64).reshape(-1, 3)
-        r = np.asarray(r, dtype=np.float64).ravel()
-        cx, cy, cz = c[:, 0], c[:, 1], c[:, 2]
-        den = np.maximum(cz * cz - r * r, 1e-12)
-        sx = r * np.sqrt(np.maximum(cx * cx + den, 0.0))
-        sy = r * np.sqrt(np.maximum(cy * cy + den, 0.0))
-        x0 = (cx * cz - sx) / den
-        x1 = (cx * cz + sx) / den
-        y0 = (cy * cz - sy) / den
-        y1 = (cy * cz + sy) / den
-        behind = cz + r <= NEAR
-        crossing = ~behind & (cz - r <= NEAR)
-        x0[behind] = y0[behind] = np.inf
-        x1[behind] = y1[behind] = -np.inf
-        x0[crossing] = y0[crossing] = -np.inf
-        x1[crossing] = y1[crossing] = np.inf
-        lo_x = np.full(n, np.inf)
-        hi_x = np.full(n, -np.inf)
-        lo_y = np.full(n, np.inf)
-        hi_y = np.full(n, -np.inf)
-        np.minimum.at(lo_x, j, x0)
-        np.maximum.at(hi_x, j, x1)
-        np.minimum.at(lo_y, j, y0)
-        np.maximum.at(hi_y, j, y1)
-        u0, u1 = self._span(lo_x, hi_x, self.col_min, self.col_max)
-        v0, v1 = self._span(lo_y, hi_y, self.row_min, self.row_max)
-        out = np.stack([v0, v1, u0, u1], axis=1).astype(np.int64)
-        empty = (u0 >= u1) | (v0 >= v1)
-        out[empty] = 0
-        return out
-
-
-_RAYS: OrderedDict = OrderedDict()
-_RAYS_LOCK = threading.Lock()
-
-
-def camera_rays(cam: CameraModel) -> CameraRays:
-    """The cached rays of a camera (keyed by its intrinsics and size, not its pose)."""
-    key = (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes())
-    with _RAYS_LOCK:
-        rays = _RAYS.get(key)
-        if rays is not None:
-            _RAYS.move_to_end(key)
-            return rays
-    rays = CameraRays(cam)
-    with _RAYS_LOCK:
-        _RAYS[key] = rays
-        while len(_RAYS) > 16:
-            _RAYS.popitem(last=False)
-    return rays
-
-
-# ---- shading -------------------------------------------------------------------------------------
-
-class _Shader:
-    """Lights, materials and the room for one (scene, camera, time); shades flat arrays of rays."""
-
-    def __init__(self, scene: Scene, cam: CameraModel, rays: CameraRays, prims: list, t: float):
-        self.atlas = scene.atlas
-        self.R = cam.R
-        self.C = cam.center
-        self.inv_f = 1.0 / rays.f
-        self.ambient = float(scene.ambient)
-        self.lights_w = [(np.asarray(d, float), float(k)) for d, k in scene.lights]
-        self.lights_c = [([float(v) for v in cam.R @ d], k) for d, k in self.lights_w]
-        self.shadows = scene.ground_positions(t)
-        room = scene.room
-        self.lo = [float(v) for v in room.lo]
-        self.hi = [float(v) for v in room.hi]
-        mats = [scene.atlas.materials[m] for m in room.face_materials]
-        self.room_mat = mats[0]
-        self.room_stride = mats[1].x - mats[0].x
-        if any(m.x != mats[0].x + k * self.room_stride or m.y != mats[0].y or m.w != mats[0].w for k, m in enumerate(mats)):
-            raise RuntimeError("room textures must share one atlas shelf at equal stride")
-        # per-primitive material table (index k of the scene list; row 0, the room, unused)
-        table = np.zeros((len(prims), 6), np.float64)
-        for k, p in enumerate(prims[1:], 1):
-            m = scene.atlas.materials[p.material]
-            table[k] = (m.x - 0.5, m.y - 0.5, m.w, m.h, m.texels_per_metre * self.inv_f, 1.0 if m.wrap else 0.0)
-        self.mat = [np.ascontiguousarray(table[:, i], dtype=np.float32) for i in range(6)]
-
-    # the room: the exit point of each ray from the axis-aligned box
-    def _room_dirs(self, x, y):
-        R = self.R
-        return [float(R[0, i]) * x + float(R[1, i]) * y + float(R[2, i]) for i in range(3)]
-
-    def room_intersect(self, x, y):
-        ts = []
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for D, lo, hi, c in zip(self._room_dirs(x, y), self.lo, self.hi, self.C):
-                ts.append(((lo - float(c)) + (hi - lo) * (D > 0)) / D)
-        return np.minimum(np.minimum(ts[0], ts[1]), ts[2])
-
-    def room_shade(self, x, y, t, want_normals=False, shadows=True):
-        Dx, Dy, Dz = self._room_dirs(x, y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ts = [((lo - float(c)) + (hi - lo) * (D > 0)) / D for D, lo, hi, c in zip((Dx, Dy, Dz), self.lo, self.hi, self.C)]
-        on_x = (ts[0] <= ts[1]) & (ts[0] <= ts[2])
-        on_y = ~on_x & (ts[1] <= ts[2])
-        on_z = ~(on_x | on_y)
-        fx, fy, fz = (a.astype(np.float32) for a in (on_x, on_y, on_z))
-        Cx, Cy, Cz = (float(c) for c in self.C)
-        Px = Cx + t * Dx
-        Py = Cy + t * Dy
-        Pz = Cz + t * Dz
-        Dsel = Dx * fx + Dy * fy + Dz * fz
-        positive = Dsel > 0
-        fp = positive.astype(np.float32)
-        code = fy * 2.0 + fz * 4.0 + fp  # -x, +x, floor, ceiling, -z, +z
-        m = self.room_mat
-        u = (Px + (Pz - Px) * fx) * (1.0 / m.tile_m[0])
-        v = (Py + (Pz - Py) * fy) * (-1.0 / m.tile_m[1])
-        u -= np.floor(u)
-        v -= np.floor(v)
-        ax = (m.x - 0.5) + self.room_stride * code + u * m.w
-        ay = (m.y - 0.5) + v * m.h
-        sgn = 1.0 - 2.0 * fp  # the face normal is -sign(D) along the face's axis
-        lum = np.full(np.shape(x), self.ambient, np.float32)
-        for (L, k) in self.lights_w:
-            lum += k * np.maximum(sgn * (float(L[0]) * fx + float(L[1]) * fy + float(L[2]) * fz), 0.0)
-        floor = on_y & ~positive
-        if shadows and self.shadows:
-            idx = np.flatnonzero(floor)
-            if idx.size:
-                lum.ravel()[idx] *= self.shadow_factor(Px.ravel()[idx], Pz.ravel()[idx])
-        dd = x * x + y * y + 1.0
-        nd = np.maximum(np.abs(Dsel), 0.05 * np.sqrt(dd))
-        lod = self._lod(t, m.texels_per_metre * self.inv_f, nd, dd)
-        normals = None
-        if want_normals:
-            nw = [sgn * fx, sgn * fy, sgn * fz]
-            R = self.R
-            normals = [float(R[i, 0]) * nw[0] + float(R[i, 1]) * nw[1] + float(R[i, 2]) * nw[2] for i in range(3)]
-        return ax, ay, lod, lum, normals, floor
-
-    def shadow_factor(self, px, pz, people=None):
-        """Soft contact shadows of the people (default: all) on the floor at floor points (px, pz)."""
-        shade = np.ones(px.shape, np.float32)
-        k = 1.0 / SHADOW_RADIUS ** 2
-        for (gx, gz) in (self.shadows if people is None else people):
-            w = np.maximum(1.0 - ((px - gx) ** 2 + (pz - gz) ** 2) * k, 0.0)
-            shade *= 1.0 - SHADOW_STRENGTH * (w * w)
-        return shade
-
-    def floor_points(self, x, y, t):
-        Dx, _Dy, Dz = self._room_dirs(x, y)
-        return float(self.C[0]) + t * Dx, float(self.C[2]) + t * Dz
-
-    @staticmethod
-    def _lod(t, tpf, nd, dd):
-        # Texels per pixel: the pixel's footprint on the surface is t / (f |n.d|) along the tilt and
-        # t / (f |d|) across it; the mip level uses their geometric mean. tpf = texels per metre / f.
-        rho2 = (t * tpf) ** 2 / (nd * np.sqrt(dd))
-        return 0.5 * np.log2(np.maximum(rho2, 1e-12))
-
-    def surface_shade(self, nx, ny, nz, u, v, x, y, t, k):
-        mx, my, mw, mh, tpf, wrap = (a[k] for a in self.mat)
-        u = u - np.floor(u) * wrap
-        v = v - np.floor(v) * wrap
-        ax = mx + u * mw
-        ay = my + v * mh
-        dd = x * x + y * y + 1.0
-        nd = np.maximum(np.abs(nx * x + ny * y + nz), 0.05 * np.sqrt(dd))
-        lod = self._lod(t, tpf, nd, dd)
-        lum = np.full(x.shape, self.ambient, np.float32)
-        for (L, kk) in self.lights_c:
-            lum += kk * np.maximum(nx * L[0] + ny * L[1] + nz * L[2], 0.0)
-        return ax, ay, lod, lum
 
 
 # ---- tracing -------------------------------------------------------------------------------------
@@ -520,7 +262,7 @@ def render(scene: Scene, camera: CameraModel, t: float, *, antialias: Optional[i
     H, W = camera.height, camera.width
     prims = scene.primitives(t)
     nst = scene.static_count
-    shader = _Shader(scene, camera, rays, prims, t)
+    shader = Shader(scene, camera, rays, prims, t)
     batches = camera_batches(prims, camera.R, camera.t, scene.atlas.materials)
     boxes = [rays.boxes(b) for b in batches]
     static = _static_layer(scene, camera, shader, batches, boxes, rays, s, normals)

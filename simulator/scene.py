@@ -14,11 +14,28 @@ from typing import Union
 
 import numpy as np
 
-from calibration.boards import BoardSpec, ChessboardSpec, CharucoSpec
+from calibration.boards import BoardSpec, CharucoSpec, ChessboardSpec
 from simulator.errors import SimulatorError
-from simulator.people import MOTIONS, PersonSpec, _rot_x, _rot_y, _rot_z, person_ground, person_primitives
+from simulator.people import (
+    MOTIONS,
+    PersonSpec,
+    _rot_x,
+    _rot_y,
+    _rot_z,
+    person_ground,
+    person_primitives,
+)
 from simulator.primitives import BoardFace, Box, Capsule, Ellipsoid, Primitive, Room
-from simulator.textures import AtlasBuilder, board_texture, fabric_texture, hair_texture, plank_texture, skin_texture, speckle_texture, wall_texture
+from simulator.textures import (
+    AtlasBuilder,
+    board_texture,
+    fabric_texture,
+    hair_texture,
+    plank_texture,
+    skin_texture,
+    speckle_texture,
+    wall_texture,
+)
 
 SCENES = ("studio", "empty")
 MOTION_NAMES = MOTIONS + ("mixed",)

@@ -13,7 +13,9 @@ Two ways to get images:
   motion blur; later exposures replay frame round(t * loop_fps) mod loop_frames, fast enough for
   real-time tests of the capture path (the renderer is not). The noise of a replayed frame is one
   of `noise_variants` realisations drawn at prerender (no cost per frame), or, with
-  noise_variants = 0, drawn fresh for every frame (a few ms per 1280x720 frame).
+  noise_variants = 0, drawn fresh for every frame (a few ms per 1280x720 frame). A rendered loop is
+  kept on disk (simulator.loop_cache), so the next start with the same scene, camera and sensor
+  loads it instead of rendering it.
 
 Every random draw comes from the generator the caller passes, or from `frame_rng(index)`, so a
 capture is a pure function of (scene seed, sensor seed, camera, frame index).
@@ -30,6 +32,8 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel
+from common.bayer import demosaic, mosaic
+from simulator import loop_cache
 from simulator.errors import SimulatorError
 from simulator.options import validate_options
 from simulator.render import render
@@ -38,26 +42,7 @@ NOMINAL_EXPOSURE_S = 0.005  # exposure at which radiance 1.0 is full scale (gain
 LOOP_SCALE = 200.0  # stored loop frames: uint8 = radiance * LOOP_SCALE (headroom for highlights)
 
 ImageSource = Callable[[float, float, np.random.Generator], np.ndarray]
-
-# OpenCV names a Bayer pattern by the 2x2 block at (1, 1); the options use the block at (0, 0).
-_DEMOSAIC = {"RG": cv2.COLOR_BayerBG2RGB, "BG": cv2.COLOR_BayerRG2RGB, "GR": cv2.COLOR_BayerGB2RGB, "GB": cv2.COLOR_BayerGR2RGB}
-
-
-def bayer_mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
-    """One colour per pixel through a colour filter array; `pattern` names the top-left 2x2 row."""
-    ch = {"R": 0, "G": 1, "B": 2}
-    top = pattern
-    bottom = {"RG": "GB", "BG": "GR", "GR": "BG", "GB": "RG"}[pattern]
-    out = np.empty(rgb.shape[:2], dtype=rgb.dtype)
-    out[0::2, 0::2] = rgb[0::2, 0::2, ch[top[0]]]
-    out[0::2, 1::2] = rgb[0::2, 1::2, ch[top[1]]]
-    out[1::2, 0::2] = rgb[1::2, 0::2, ch[bottom[0]]]
-    out[1::2, 1::2] = rgb[1::2, 1::2, ch[bottom[1]]]
-    return out
-
-
-def demosaic(raw: np.ndarray, pattern: str) -> np.ndarray:
-    return cv2.cvtColor(raw, _DEMOSAIC[pattern])
+Progress = Callable[[int, int], None]  # (frames done, frames in all)
 
 
 @dataclass
@@ -81,10 +66,14 @@ class SensorModel:
     """The sensor of one simulated camera looking at `scene` through `camera` (ground truth).
 
     options: a camera's `sim = {...}` table (simulator.options.CAMERA_OPTIONS).
+    scene: a Scene, or a function that makes one, called at the first render (building a scene's
+    textures takes a while, and a loop found in the loop cache needs none); with a function,
+    `scene_key` says what the scene is made from (for the loop cache; None: no caching).
     """
 
     def __init__(self, scene, camera: CameraModel, options: Optional[dict] = None, *, gain_db: float = 0.0,
-                 loop_frames: int = 0, loop_fps: float = 30.0, antialias: Optional[int] = None, noise_variants: int = 0):
+                 loop_frames: int = 0, loop_fps: float = 30.0, antialias: Optional[int] = None, noise_variants: int = 0,
+                 scene_key: Optional[dict] = None):
         try:
             self.opts = validate_options(dict(options or {}), "camera")
         except ValueError as exc:
@@ -93,7 +82,8 @@ class SensorModel:
             raise SimulatorError(f"camera {camera.name}: gain must be between -20 and 48 dB, got {gain_db}")
         if loop_frames < 0 or (loop_frames > 0 and not loop_fps > 0):
             raise SimulatorError(f"camera {camera.name}: loop_frames must be >= 0 and loop_fps positive")
-        self.scene = scene
+        self._scene = scene
+        self._scene_key = scene_key if callable(scene) else loop_cache.scene_fingerprint(scene)
         self.camera = camera
         self.gain = 10.0 ** (gain_db / 20.0)
         self.loop_frames = int(loop_frames)
@@ -107,7 +97,17 @@ class SensorModel:
         self._noise_bank16: Optional[np.ndarray] = None
         self._loop_clean: Optional[np.ndarray] = None
         self._loop_sigma16: Optional[np.ndarray] = None
+        self._variants: Optional[list] = None
+        self.loop_origin: Optional[str] = None  # "render" or "cache" once the loop is made
         self._lock = threading.RLock()  # prerender draws noise under it
+
+    @property
+    def scene(self):
+        if callable(self._scene):  # made on first use (a Scene itself is not callable)
+            with self._lock:
+                if callable(self._scene):
+                    self._scene = self._scene()
+        return self._scene
 
     # ---- randomness -------------------------------------------------------------------------
     def frame_rng(self, frame_index: int) -> np.random.Generator:
@@ -150,12 +150,16 @@ class SensorModel:
         dn, var = self._signal(radiance, exposure_s)
         noise = self._noise(dn.shape, rng) if fast_noise else rng.standard_normal(dn.shape, dtype=np.float32)
         dn += np.sqrt(var) * noise
-        img = np.clip(dn + 0.5, 0.0, 255.0).astype(np.uint8)
+        return self._through_filter(np.clip(dn + 0.5, 0.0, 255.0).astype(np.uint8), raw)
+
+    def _through_filter(self, img: np.ndarray, raw: bool) -> np.ndarray:
+        """A sensor with a colour filter array sees one colour per pixel: the mosaic when `raw`, else
+        the RGB its demosaic gives back (which keeps every sample)."""
         pattern = self.opts["bayer"]
-        if pattern:
-            mosaic = bayer_mosaic(img, pattern)
-            return mosaic if raw else demosaic(mosaic, pattern)
-        return img
+        if not pattern:
+            return img
+        samples = mosaic(img, pattern)
+        return samples if raw else demosaic(samples, pattern)
 
     def _signal(self, radiance: np.ndarray, exposure_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Mean digital number of each pixel and its noise variance (DN^2)."""
@@ -205,23 +209,23 @@ class SensorModel:
         return Capture(frame_index, trigger_s, start, exposure_s, ts, image)
 
     # ---- pre-rendered loop ------------------------------------------------------------------
-    def prerender(self, exposure_s: float = NOMINAL_EXPOSURE_S) -> None:
-        """Render the loop now (otherwise the first exposure does it)."""
+    def prerender(self, exposure_s: float = NOMINAL_EXPOSURE_S, progress: Optional[Progress] = None) -> None:
+        """Make the loop now (otherwise the first exposure does it): load it from the loop cache, or
+        render it (calling `progress(done, total)` after each frame) and keep it there."""
         with self._lock:
             if self._loop is not None:
                 return
-            H, W = self.camera.height, self.camera.width
-            frames = np.empty((self.loop_frames, H, W, 3), np.uint8)
-            clean = np.empty_like(frames)
-            sigma16 = np.empty_like(frames)
-            for i in range(self.loop_frames):
-                rad = self.radiance(i / self.loop_fps, exposure_s)
-                frames[i] = np.clip(rad * LOOP_SCALE + 0.5, 0, 255).astype(np.uint8)
-                dn, var = self._signal(rad, exposure_s)
-                clean[i] = np.clip(dn + 0.5, 0.0, 255.0).astype(np.uint8)
-                sigma16[i] = np.clip(np.sqrt(var) * 16.0 + 0.5, 0, 255).astype(np.uint8)
-            self._loop, self._loop_exposure_s = frames, exposure_s
-            self._loop_clean, self._loop_sigma16 = clean, sigma16
+            shape = (self.loop_frames, self.camera.height, self.camera.width, 3)
+            key = self.loop_cache_key(exposure_s)
+            arrays = loop_cache.load(key, shape) if key is not None else None
+            self.loop_origin = "cache"
+            if arrays is None:
+                arrays = self._render_loop(exposure_s, progress)
+                self.loop_origin = "render"
+                if key is not None:
+                    loop_cache.store(key, arrays)
+            self._loop, self._loop_exposure_s = arrays["frames"], exposure_s
+            self._loop_clean, self._loop_sigma16 = arrays["clean"], arrays["sigma16"]
             self._variants = None
             if self.noise_variants > 0:
                 rng = np.random.default_rng([self._seed, 1 << 42])
@@ -231,24 +235,41 @@ class SensorModel:
                         img.flags.writeable = False  # shared between frames: consumers must not write into it
                 self._variants = variants
 
+    def loop_cache_key(self, exposure_s: float) -> Optional[str]:
+        """Everything the rendered loop depends on (None: a scene the cache cannot describe). The
+        noise variants are not in it: they are drawn from the cached arrays at every start."""
+        if self._scene_key is None:
+            return None
+        return loop_cache.loop_key({
+            "scene": self._scene_key, "camera": self.camera.to_dict(), "sensor": self.opts, "gain": self.gain,
+            "antialias": self.antialias, "loop_frames": self.loop_frames, "loop_fps": self.loop_fps,
+            "exposure_s": float(exposure_s), "loop_scale": LOOP_SCALE, "nominal_exposure_s": NOMINAL_EXPOSURE_S})
+
+    def _render_loop(self, exposure_s: float, progress: Optional[Progress]) -> dict[str, np.ndarray]:
+        """frames: radiance * LOOP_SCALE (for other exposures); clean: the noise-free digital image;
+        sigma16: its per-pixel noise sigma in 1/16 DN."""
+        H, W = self.camera.height, self.camera.width
+        frames = np.empty((self.loop_frames, H, W, 3), np.uint8)
+        clean = np.empty_like(frames)
+        sigma16 = np.empty_like(frames)
+        for i in range(self.loop_frames):
+            rad = self.radiance(i / self.loop_fps, exposure_s)
+            frames[i] = np.clip(rad * LOOP_SCALE + 0.5, 0, 255).astype(np.uint8)
+            dn, var = self._signal(rad, exposure_s)
+            clean[i] = np.clip(dn + 0.5, 0.0, 255.0).astype(np.uint8)
+            sigma16[i] = np.clip(np.sqrt(var) * 16.0 + 0.5, 0, 255).astype(np.uint8)
+            if progress is not None:
+                progress(i + 1, self.loop_frames)
+        return {"frames": frames, "clean": clean, "sigma16": sigma16}
+
     def _replay(self, t_mid_s: float, rng: np.random.Generator, raw: bool) -> np.ndarray:
         """A loop frame at the loop's own exposure with fresh noise, in a few vectorised uint8/int16
         passes (a few ms at 1280x720): the noise-free digital image plus its per-pixel noise sigma
         (in 1/16 DN) times a window of a standard-normal bank (in 1/16 units), saturated to uint8."""
         i = int(round(t_mid_s * self.loop_fps)) % self.loop_frames
         if self._variants is not None:  # cheapest: one of the noise realisations drawn at prerender
-            img = self._variants[i][int(rng.integers(0, len(self._variants[i])))]
-            pattern = self.opts["bayer"]
-            if pattern:
-                mosaic = bayer_mosaic(img, pattern)
-                return mosaic if raw else demosaic(mosaic, pattern)
-            return img
-        img = self._noisy(i, rng)
-        pattern = self.opts["bayer"]
-        if pattern:
-            mosaic = bayer_mosaic(img, pattern)
-            return mosaic if raw else demosaic(mosaic, pattern)
-        return img
+            return self._through_filter(self._variants[i][int(rng.integers(0, len(self._variants[i])))], raw)
+        return self._through_filter(self._noisy(i, rng), raw)
 
     def _noisy(self, i: int, rng: np.random.Generator) -> np.ndarray:
         clean = self._loop_clean[i]
@@ -280,7 +301,6 @@ class SimRig:
 
     def __init__(self, config, antialias: Optional[int] = None):
         from simulator.rig import arc_rig
-        from simulator.scene import Scene
 
         self.options = validate_scene_options(getattr(config, "sim", {}) or {})
         cams = [c for c in config.cameras if str(c.uri).startswith("sim://")]
@@ -289,10 +309,22 @@ class SimRig:
         order = {"left": 0, "right": 2}
         cams = sorted(cams, key=lambda c: order.get(getattr(c, "role", ""), 1))  # stable: others keep their order
         self.cameras = cams
-        self.scene = Scene.from_options(self.options)
+        self._scene = None  # built at first use (the scene property)
+        self._scene_lock = threading.Lock()
         self.calibration = arc_rig([(c.name, c.width, c.height) for c in cams], seed=self.options["seed"])
         self._sensors: dict[str, SensorModel] = {}
         self._antialias = antialias
+
+    @property
+    def scene(self):
+        """The shared scene, built at first use: a start whose loops all come from the loop cache
+        never needs it."""
+        with self._scene_lock:
+            if self._scene is None:
+                from simulator.scene import Scene
+
+                self._scene = Scene.from_options(self.options)
+            return self._scene
 
     def sensor(self, name: str) -> SensorModel:
         if name not in self._sensors:
@@ -300,7 +332,8 @@ class SimRig:
             if cfg is None:
                 raise SimulatorError(f"no sim camera named {name!r} (have: {', '.join(c.name for c in self.cameras)})")
             self._sensors[name] = SensorModel(
-                self.scene, self.calibration[name], getattr(cfg, "sim", None) or {},
+                lambda: self.scene, self.calibration[name], getattr(cfg, "sim", None) or {},
+                scene_key={"options": self.options},  # a scene is a pure function of its options
                 gain_db=float(getattr(cfg, "gain", None) or 0.0),
                 loop_frames=self.options["loop_frames"], loop_fps=self.options["loop_fps"], antialias=self._antialias,
                 noise_variants=self.options["noise_variants"])

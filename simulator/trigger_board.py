@@ -15,20 +15,14 @@ pulses not delivered to the cameras, replies delayed at random, lines corrupted 
 lines held back and overtaken.
 
 The command handling mirrors the firmware's (sync/firmware/trigger_board/tb_board.c), so the host
-driver sees the same board either way.
+driver sees the same board either way. The port and the line queue (delays, order) are
+`simulator.serial_link`; this module decides what the board says, when, and which faults hit it.
 """
 from __future__ import annotations
 
-import heapq
-import itertools
 import math
-import os
-import select
-import socket
-import tempfile
 import threading
 import time
-import tty
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
@@ -37,12 +31,21 @@ import numpy as np
 
 from simulator.errors import SimulatorError
 from simulator.options import validate_options
-from sync.protocol import BOARD, HOST, MAX_LINE, PROTOCOL_VERSION, LineReader, Message, encode, pulse_offset_us
+from simulator.serial_link import BoardSerial, PtyTransport, SocketTransport, transmission_error
+from sync.protocol import (
+    BOARD,
+    HOST,
+    MAX_LINE,
+    PROTOCOL_VERSION,
+    LineReader,
+    Message,
+    encode,
+    pulse_offset_us,
+)
 
 FIRMWARE_VERSION = "1.0.0-sim"
 START_LEAD_US = 2000  # as the firmware: the first pulse follows START by this much
 MIN_RATE_MHZ, MAX_RATE_MHZ, MAX_FLASH_MS = 1, 10_000_000, 60_000
-_INLINE_WAIT_NS = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -77,155 +80,6 @@ class FlashTruth:
     host_end_ns: int
 
 
-# ---- transports ------------------------------------------------------------------------------------
-
-class PtyTransport:
-    """The board end of a pseudo-terminal pair; the host opens `url` (a symlink to the slave)."""
-
-    def __init__(self, link: Optional[Path] = None):
-        self._own_dir = None
-        if link is None:
-            self._own_dir = tempfile.mkdtemp(prefix="trigger-board-")
-            link = Path(self._own_dir) / "tty"
-        self.link = Path(link)
-        self.master: Optional[int] = None
-        self.slave: Optional[int] = None
-
-    @property
-    def url(self) -> str:
-        return str(self.link)
-
-    def open(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(master)
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        self.master, self.slave = master, slave
-        tmp = self.link.with_name(self.link.name + ".new")
-        if tmp.is_symlink() or tmp.exists():
-            tmp.unlink()
-        os.symlink(os.ttyname(slave), tmp)
-        os.replace(tmp, self.link)  # atomic: the host never sees a half-made link
-
-    def close(self) -> None:
-        # The device disappears with its node, as udev removes /dev/serial/by-id/... on unplug.
-        if self.link.is_symlink():
-            self.link.unlink()
-        for fd in (self.master, self.slave):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self.master = self.slave = None
-
-    def remove(self) -> None:
-        self.close()
-        if self._own_dir:
-            try:
-                os.rmdir(self._own_dir)
-            except OSError:
-                pass
-
-    def read(self, timeout: float) -> Optional[bytes]:
-        fd = self.master
-        if fd is None:
-            time.sleep(timeout)
-            return None
-        try:
-            ready, _, _ = select.select([fd], [], [], timeout)
-            return os.read(fd, 4096) if ready else None
-        except (OSError, ValueError):
-            return None  # closed under us (unplug) or nobody on the other end yet
-
-    def write(self, data: bytes) -> bool:
-        fd = self.master
-        if fd is None:
-            return False
-        try:
-            os.write(fd, data)
-            return True
-        except (BlockingIOError, OSError):
-            return False  # host not reading: the line is lost, as a USB CDC buffer overflows
-
-
-class SocketTransport:
-    """The board behind a loopback TCP port (`socket://127.0.0.1:PORT`), one host at a time."""
-
-    def __init__(self, host: str = "127.0.0.1", port: int = 0):
-        self.host = host
-        self.port = port
-        self._listener: Optional[socket.socket] = None
-        self._client: Optional[socket.socket] = None
-        self._lock = threading.Lock()
-
-    @property
-    def url(self) -> str:
-        return f"socket://{self.host}:{self.port}"
-
-    def open(self) -> None:
-        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        s.bind((self.host, self.port))
-        s.listen(1)
-        self.port = s.getsockname()[1]  # keep the port: a replugged board comes back on it
-        self._listener = s
-
-    def close(self) -> None:
-        with self._lock:
-            for s in (self._client, self._listener):
-                if s is not None:
-                    try:
-                        s.close()
-                    except OSError:
-                        pass
-            self._client = self._listener = None
-
-    remove = close
-
-    def read(self, timeout: float) -> Optional[bytes]:
-        with self._lock:
-            client, listener = self._client, self._listener
-        if listener is None:
-            time.sleep(timeout)
-            return None
-        try:
-            if client is None:
-                ready, _, _ = select.select([listener], [], [], timeout)
-                if ready:
-                    conn, _ = listener.accept()
-                    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                    with self._lock:
-                        self._client = conn
-                return None
-            ready, _, _ = select.select([client], [], [], timeout)
-            if not ready:
-                return None
-            data = client.recv(4096)
-        except (OSError, ValueError):
-            data = b""
-        if not data:  # the host hung up: wait for the next one
-            with self._lock:
-                if self._client is client:
-                    self._client = None
-            try:
-                client.close()
-            except OSError:
-                pass
-        return data or None
-
-    def write(self, data: bytes) -> bool:
-        with self._lock:
-            client = self._client
-        if client is None:
-            return False
-        try:
-            client.sendall(data)
-            return True
-        except OSError:
-            return False
-
-
 # ---- the board -------------------------------------------------------------------------------------
 
 class TriggerBoardEmulator:
@@ -240,20 +94,16 @@ class TriggerBoardEmulator:
         self.board_id = board_id
         self.rng = np.random.default_rng(self.options["seed"])  # used under self._lock only
         self._rng_in = np.random.default_rng(self.options["seed"] + 1)  # the io thread's (incoming faults)
-        if self.options["transport"] == "socket":
-            self.transport = SocketTransport(port=port)
-        else:
-            self.transport = PtyTransport(link)
+        transport = SocketTransport(port=port) if self.options["transport"] == "socket" else PtyTransport(link)
+        self.serial = BoardSerial(transport)
         self.clock = BoardClock(time.monotonic_ns(), int(self.options["clock_offset_us"]), float(self.options["drift_ppm"]))
         self.boots = 0
         # the truth, for tests and `rig sync check`
         self.pulses: list[PulseTruth] = []
         self.flashes: list[FlashTruth] = []
-        self.lines_sent = 0
         self.lines_corrupted = 0
         self.lines_delayed = 0
         self.lines_received = 0
-        self.lines_lost = 0  # written while no host was listening
 
         self._pulse_outputs: list[Callable[[int, int], None]] = []
         self._led_outputs: list[Callable[[bool, int], None]] = []
@@ -261,9 +111,6 @@ class TriggerBoardEmulator:
         self._cv = threading.Condition(self._lock)
         self._reader = LineReader(HOST, on_reject=self._rejected)
         self.train = 0  # counts STARTs over the emulator's life, for the truth log
-        self._out: list[tuple[int, int, bytes]] = []  # heap (due_ns, seq, line)
-        self._seq = itertools.count()
-        self._last_due = 0
         self._plugged = False
         self._closed = False
         self._threads: list[threading.Thread] = []
@@ -281,14 +128,29 @@ class TriggerBoardEmulator:
     @property
     def url(self) -> str:
         """What the host's pyserial opens."""
-        return self.transport.url
+        return self.serial.url
+
+    @property
+    def transport(self):
+        """The port's transport (PtyTransport or SocketTransport)."""
+        return self.serial.transport
+
+    @property
+    def lines_sent(self) -> int:
+        return self.serial.sent
+
+    @property
+    def lines_lost(self) -> int:
+        """Lines written while no host was listening."""
+        return self.serial.lost
 
     # --- power and cable --------------------------------------------------------------------------
     def open(self) -> "TriggerBoardEmulator":
         if self._threads:
             return self
+        self.serial.start()
         self._plug()
-        for target, name in ((self._io_loop, "io"), (self._pulse_loop, "pulses"), (self._write_loop, "writer")):
+        for target, name in ((self._io_loop, "io"), (self._pulse_loop, "pulses")):
             t = threading.Thread(target=target, name=f"emulated-trigger-{name}", daemon=True)
             t.start()
             self._threads.append(t)
@@ -299,8 +161,7 @@ class TriggerBoardEmulator:
         with self._cv:
             self._plugged = False
             self._reset_state()
-            self._out.clear()
-            self.transport.close()
+            self.serial.unplug()
             self._cv.notify_all()
 
     def replug(self) -> None:
@@ -319,7 +180,7 @@ class TriggerBoardEmulator:
         for t in self._threads:
             t.join(timeout=2)
         self._threads.clear()
-        self.transport.remove()
+        self.serial.close()
 
     def __enter__(self) -> "TriggerBoardEmulator":
         return self.open()
@@ -332,7 +193,7 @@ class TriggerBoardEmulator:
         self.clock = BoardClock(time.monotonic_ns(), int(self.options["clock_offset_us"]), float(self.options["drift_ppm"]))
         self._reset_state()
         self._reader = LineReader(HOST, on_reject=self._rejected)
-        self.transport.open()
+        self.serial.plug()
         self._plugged = True
         self._send("BOOT", PROTOCOL_VERSION, FIRMWARE_VERSION, self.board_id)
 
@@ -371,56 +232,20 @@ class TriggerBoardEmulator:
         """Put a line on the wire after the link's delay; faults are applied here."""
         now = time.monotonic_ns()
         opts = self.options
-        if opts["corrupt_rate"] > 0 and self.rng.random() < opts["corrupt_rate"]:
-            line = _corrupt(line, self.rng)
-            self.lines_corrupted += 1
-        jitter = int(self.rng.exponential(opts["reply_jitter_us"] * 1000.0)) if opts["reply_jitter_us"] > 0 else 0
-        with self._cv:
+        with self._cv:  # self.rng is drawn under the lock
+            if opts["corrupt_rate"] > 0 and self.rng.random() < opts["corrupt_rate"]:
+                line = transmission_error(line, self.rng)
+                self.lines_corrupted += 1
+            jitter = int(self.rng.exponential(opts["reply_jitter_us"] * 1000.0)) if opts["reply_jitter_us"] > 0 else 0
             if opts["delay_rate"] > 0 and self.rng.random() < opts["delay_rate"]:
-                due = now + int(opts["delay_ms"] * 1e6)  # held back: later lines overtake it
                 self.lines_delayed += 1
+                self.serial.send(line, now + int(opts["delay_ms"] * 1e6), hold_back=True)
             else:
-                due = max(now + jitter, self._last_due)  # a serial link keeps its order
-                self._last_due = due
-                if not self._out and due - now <= _INLINE_WAIT_NS:
-                    # a short delay is waited out here: a hand-off to the writer thread would add its
-                    # own wake-up latency (tens of microseconds) to the delay the options ask for
-                    while time.monotonic_ns() < due:
-                        time.sleep(0)
-                    self._transmit(line)
-                    return
-            heapq.heappush(self._out, (due, next(self._seq), line))
-            self._cv.notify_all()
-
-    def _transmit(self, line: bytes) -> None:
-        if self._plugged and self.transport.write(line):
-            self.lines_sent += 1
-        else:
-            self.lines_lost += 1
-
-    def _write_loop(self) -> None:
-        spin_ns = 400_000  # wake this early and wait out the rest precisely: a condition wait overshoots
-        while True:
-            with self._cv:
-                while not self._closed:
-                    now = time.monotonic_ns()
-                    if self._out and self._out[0][0] - spin_ns <= now:
-                        break
-                    wait = (self._out[0][0] - spin_ns - now) / 1e9 if self._out else 0.1
-                    self._cv.wait(min(wait, 0.1))
-                if self._closed:
-                    return
-                due = self._out[0][0]
-            while time.monotonic_ns() < due:
-                time.sleep(0)
-            with self._cv:
-                if self._out and self._out[0][0] <= time.monotonic_ns():
-                    _, _, line = heapq.heappop(self._out)
-                    self._transmit(line)
+                self.serial.send(line, now + jitter)
 
     def _io_loop(self) -> None:
         while not self._closed:
-            data = self.transport.read(0.05)
+            data = self.serial.read(0.05)
             if not data:
                 continue
             arrival_ns = time.monotonic_ns()
@@ -440,7 +265,7 @@ class TriggerBoardEmulator:
         out = bytearray()
         for part in data.split(b"\n"):
             if part and self._rng_in.random() < self.options["corrupt_rate"]:
-                part = _corrupt(part + b"\n", self._rng_in)[:-1]
+                part = transmission_error(part + b"\n", self._rng_in)[:-1]
                 self.lines_corrupted += 1
             out += part + b"\n"
         return bytes(out[:-1])
@@ -552,24 +377,6 @@ class TriggerBoardEmulator:
 
 
 _ERROR_CODES = {"length": "LENGTH", "checksum": "CHECKSUM", "syntax": "SYNTAX", "unknown": "UNKNOWN", "args": "ARGS"}
-
-
-def _corrupt(line: bytes, rng: np.random.Generator) -> bytes:
-    """One transmission error in a line: a flipped bit, a lost, a noise or a repeated byte."""
-    body = bytearray(line.rstrip(b"\n"))
-    if not body:
-        return line
-    i = int(rng.integers(len(body)))
-    how = int(rng.integers(4))
-    if how == 0:
-        body[i] ^= 1 << int(rng.integers(8))
-    elif how == 1:
-        del body[i]
-    elif how == 2:
-        body.insert(i, int(rng.integers(256)))
-    else:
-        body[i:i] = body[i:i + 1]
-    return bytes(body) + b"\n"
 
 
 __all__ = ["BoardClock", "FlashTruth", "PtyTransport", "PulseTruth", "SocketTransport", "TriggerBoardEmulator", "MAX_LINE"]

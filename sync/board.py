@@ -1,5 +1,4 @@
-"""Host driver of the trigger board: any pyserial URL, handshake, commands, pulse events, clock model,
-reconnection.
+"""Host driver of the trigger board: handshake, commands, pulse events, clock model, reconnection.
 
     board = TriggerBoard("serial:///dev/ttyACM0")      # or socket://127.0.0.1:7000, or a device path
     board.connect()                                      # HELLO handshake, starts the clock model
@@ -10,70 +9,31 @@ reconnection.
     host_ns = board.clock.board_to_host_ns(pulse.board_us)
     board.stop(); board.close()
 
-Threads: a reader thread parses everything the board sends (replies wake the waiting request,
-pulses and events go to the subscribers, in the reader thread: keep callbacks short); a supervisor
-thread sends time queries to keep the clock model current and, when the port is lost, reopens it
-until the board answers again. Bad lines are counted, never raised. `sim://` boards are emulated:
-`rig.session` opens them.
+The port itself (any pyserial URL, lines in and out, losing it) is `sync.link.SerialLink`; the
+types the driver reports are in `sync.board_events` and importable from here too.
+
+Threads: the link's reader thread hands every line to `_dispatch` (replies wake the waiting
+request, pulses and events go to the subscribers, in the reader thread: keep callbacks short); a
+supervisor thread sends time queries to keep the clock model current and, when the port is lost,
+reopens it until the board answers again. Bad lines are counted, never raised. `sim://` boards are
+emulated: `rig.capture.session` opens them.
 """
 from __future__ import annotations
 
 import itertools
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from typing import Callable, Optional
 
-import serial
-
+from sync.board_events import BoardEvent, BoardInfo, LinkCounters, Pulse, PulseOrder
 from sync.clock import ClockModel, TimeSample
 from sync.errors import TriggerBoardError
-from sync.protocol import BOARD, HOST, LineReader, Message, encode, rate_to_mhz
+from sync.link import BAUDRATE, SerialLink, open_port, port_url
+from sync.protocol import HOST, Message, encode, rate_to_mhz
 
-BAUDRATE = 115200
+__all__ = ["BAUDRATE", "BoardEvent", "BoardInfo", "LinkCounters", "Pulse", "TriggerBoard", "open_port", "port_url"]
+
 _REPLY_KINDS = {"HELLO": {"ID"}, "TIME": {"TIME"}, "STATUS": {"STATUS"}}  # others answer OK; any may answer ERR
-
-
-@dataclass(frozen=True)
-class BoardInfo:
-    protocol: int
-    firmware: str
-    board_id: str
-
-
-@dataclass(frozen=True)
-class Pulse:
-    """One trigger pulse as the board reported it."""
-
-    index: int  # counts from 0 at each START
-    board_us: int  # rising edge on the board's clock
-    received_ns: int  # host monotonic time the report arrived
-    late: bool = False  # arrived after a later pulse's report (a delayed line)
-
-
-@dataclass(frozen=True)
-class BoardEvent:
-    """Something other than a pulse: connected, disconnected, done, flash, board_error, boot."""
-
-    kind: str
-    detail: str
-    time_ns: int
-    values: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass
-class LinkCounters:
-    pulses: int = 0
-    missing_pulse_reports: int = 0  # gaps in pulse indices (lines lost on the link)
-    late_pulses: int = 0  # reports that came after a later one, and filled a gap
-    duplicate_pulses: int = 0
-    unexpected_replies: int = 0  # replies nobody waits for (late, or not matching the request)
-    board_errors: dict[str, int] = field(default_factory=dict)  # ERR 0 CODE: the board could not read our line
-    timeouts: int = 0
-    retries: int = 0
-    disconnects: int = 0
-    reconnects: int = 0
-    listener_errors: int = 0
 
 
 class _Pending:
@@ -85,30 +45,6 @@ class _Pending:
         self.reply: Optional[Message] = None
         self.recv_ns = 0
         self.error: Optional[str] = None
-
-
-def port_url(uri: str) -> str:
-    """What pyserial opens for a board URI: serial:///dev/X is the device path; other URLs as they are."""
-    if uri.startswith("serial://"):
-        path = uri[len("serial://"):]
-        if not path:
-            raise TriggerBoardError(f"{uri}: no device path (e.g. serial:///dev/ttyACM0)")
-        return path
-    if uri.startswith("sim://"):
-        raise TriggerBoardError(f"{uri}: an emulated board; open the rig with rig.session to use it")
-    return uri
-
-
-def open_port(uri: str, baudrate: int = BAUDRATE) -> serial.SerialBase:
-    try:
-        port = serial.serial_for_url(port_url(uri), baudrate=baudrate, timeout=0.05, write_timeout=1.0)
-    except (serial.SerialException, OSError, ValueError) as exc:
-        raise TriggerBoardError(f"{uri}: cannot open the trigger board ({exc})") from None
-    try:
-        port.reset_input_buffer()
-    except (serial.SerialException, OSError):
-        pass
-    return port
 
 
 class TriggerBoard:
@@ -128,44 +64,43 @@ class TriggerBoard:
         self.young_s = 5.0  # for this long after a (re)connect, time queries run at 100 Hz
         self.info: Optional[BoardInfo] = None
         self.counters = LinkCounters()
-        self.reader = LineReader(BOARD)
+        self.link = SerialLink(uri, on_message=self._dispatch, on_lost=self._on_port_lost)
         self.rate_hz: Optional[float] = None
         self.pulse_width_us: Optional[float] = None
         self.last_error: Optional[str] = None
 
-        self._port: Optional[serial.SerialBase] = None
         self._connected = threading.Event()
         self._closed = threading.Event()
-        self._lock = threading.RLock()  # port, pending requests
-        self._write_lock = threading.Lock()
+        self._lock = threading.Lock()  # pending requests, and the connected flag when the port is lost
         self._time_lock = threading.Lock()
         self._pending: dict[int, _Pending] = {}
         self._numbers = itertools.count(1)
         self._pulse_listeners: list[Callable[[Pulse], None]] = []
         self._event_listeners: list[Callable[[BoardEvent], None]] = []
-        self._next_pulse = 0
-        self._missing: set[int] = set()
+        self._pulse_order = PulseOrder(self.counters)
         self._flash_events: list[BoardEvent] = []
         self._flash_cv = threading.Condition()
         self._done_cv = threading.Condition()
         self._done: Optional[int] = None
-        self._threads: list[threading.Thread] = []
-        self._port_changed = threading.Condition(self._lock)
+        self._supervisor: Optional[threading.Thread] = None
+
+    @property
+    def reader(self):
+        """The link's LineReader (its counters are the line statistics)."""
+        return self.link.reader
 
     # --- connection -------------------------------------------------------------------------------
     def connect(self, timeout: float = 3.0) -> BoardInfo:
         """Open the port and handshake; raises TriggerBoardError when no board answers."""
-        port = open_port(self.uri, self.baudrate)
-        self._set_port(port)
-        if not self._threads:
-            for target, name in ((self._read_loop, "reader"), (self._supervise, "supervisor")):
-                t = threading.Thread(target=target, name=f"trigger-board-{name}", daemon=True)
-                t.start()
-                self._threads.append(t)
+        port = self.link.open(self.baudrate)
+        self.link.start()
+        if self._supervisor is None:
+            self._supervisor = threading.Thread(target=self._supervise, name="trigger-board-supervisor", daemon=True)
+            self._supervisor.start()
         try:
             self._handshake(timeout)
         except TriggerBoardError:
-            self._drop_port(port, None)
+            self.link.drop(port, None)
             raise
         self._emit(BoardEvent("connected", f"{self.uri}: {self.info.board_id} firmware {self.info.firmware}", time.monotonic_ns(),
                               {"board_id": self.info.board_id, "firmware": self.info.firmware}))
@@ -180,7 +115,7 @@ class TriggerBoard:
                                           retries=0, need_connected=False, count_timeout=False)
             except TriggerBoardError as exc:
                 last = exc
-                if self._port is None:
+                if self.link.port is None:
                     break
                 continue
             if msg["proto"] != 1:
@@ -208,15 +143,11 @@ class TriggerBoard:
             except TriggerBoardError:
                 pass
         self._closed.set()
-        with self._lock:
-            port, self._port = self._port, None
-            self._connected.clear()
-            self._port_changed.notify_all()
-        if port is not None:
-            _close_quietly(port)
-        for t in self._threads:
-            t.join(timeout=2)
-        self._threads.clear()
+        self._connected.clear()
+        self.link.close()
+        if self._supervisor is not None:
+            self._supervisor.join(timeout=2)
+            self._supervisor = None
 
     def __enter__(self) -> "TriggerBoard":
         return self
@@ -305,11 +236,12 @@ class TriggerBoard:
             "connected": self.connected,
             "board": None if self.info is None else {"id": self.info.board_id, "firmware": self.info.firmware},
             "lines": lines.lines,
-            "corrupt_lines": lines.corrupt,
+            # a line the parser itself failed on was not read either (lines.last_error says why)
+            "corrupt_lines": lines.corrupt + lines.parser_errors,
             "unknown_lines": lines.unknown,
             "out_of_order_lines": c.late_pulses + c.duplicate_pulses + c.unexpected_replies,
             "pulses": c.pulses,
-            "missing_pulse_reports": len(self._missing),
+            "missing_pulse_reports": self._pulse_order.missing,
             "late_pulses": c.late_pulses,
             "duplicate_pulses": c.duplicate_pulses,
             "unexpected_replies": c.unexpected_replies,
@@ -353,36 +285,17 @@ class TriggerBoard:
                 self._pending.pop(n, None)
 
     def _write(self, data: bytes) -> int:
-        with self._write_lock:
-            port = self._port
-            if port is None:
-                raise TriggerBoardError(f"{self.uri}: trigger board not connected ({self.last_error or 'port closed'})")
-            now = time.monotonic_ns()
-            try:
-                port.write(data)
-            except (serial.SerialException, OSError, TypeError, AttributeError, ValueError) as exc:
-                # TypeError/AttributeError/ValueError: pyserial's port after another thread closed it
-                self._drop_port(port, f"write failed: {exc or type(exc).__name__}")
-                raise TriggerBoardError(f"{self.uri}: trigger board disconnected ({exc or type(exc).__name__})") from None
-            return now
+        if self.link.port is None:
+            raise TriggerBoardError(f"{self.uri}: trigger board not connected ({self.last_error or 'port closed'})")
+        return self.link.write(data)
 
-    # --- port and threads -------------------------------------------------------------------------
-    def _set_port(self, port: serial.SerialBase) -> None:
+    # --- losing and regaining the port --------------------------------------------------------------
+    def _on_port_lost(self, reason: Optional[str]) -> None:
+        """The link dropped the port: fail waiting requests, tell subscribers (once per loss)."""
         with self._lock:
-            self._port = port
-            self.reader.clear()
-            self._port_changed.notify_all()
-
-    def _drop_port(self, port: serial.SerialBase, reason: Optional[str]) -> None:
-        """The port failed: forget it, fail waiting requests, tell subscribers (once per loss)."""
-        with self._lock:
-            if self._port is not port:
-                return
-            self._port = None
             was_connected = self._connected.is_set()
             self._connected.clear()
             pending = list(self._pending.values())
-        _close_quietly(port)
         message = f"{self.uri}: trigger board disconnected ({reason})" if reason else f"{self.uri}: closed"
         for slot in pending:
             slot.error = message
@@ -392,33 +305,6 @@ class TriggerBoard:
         if was_connected and not self._closed.is_set():
             self.counters.disconnects += 1
             self._emit(BoardEvent("disconnected", message, time.monotonic_ns()))
-
-    def _read_loop(self) -> None:
-        partial_since = 0
-        while not self._closed.is_set():
-            with self._lock:
-                port = self._port
-                if port is None:
-                    self._port_changed.wait(0.1)
-                    continue
-            try:
-                data = port.read(max(1, getattr(port, "in_waiting", 0) or 1))
-            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-                # TypeError/AttributeError: pyserial's port object after close() from another thread
-                if not self._closed.is_set():
-                    self._drop_port(port, str(exc) or type(exc).__name__)
-                continue
-            if not data:
-                continue
-            now = time.monotonic_ns()
-            # A line's arrival is when its first byte came: at 115200 baud the rest takes another
-            # two milliseconds, and pyserial hands over the first byte of a burst on its own.
-            first = partial_since if self.reader.partial else now
-            messages = self.reader.feed(data)
-            for i, msg in enumerate(messages):
-                self._dispatch(msg, first if i == 0 else now)
-            if self.reader.partial and (messages or first == now):
-                partial_since = now
 
     def _supervise(self) -> None:
         while not self._closed.is_set():
@@ -446,22 +332,24 @@ class TriggerBoard:
             self._closed.wait(self.reconnect_interval)
             if self._closed.is_set():
                 break
-            try:
-                port = open_port(self.uri, self.baudrate)
-            except TriggerBoardError as exc:
-                self.last_error = str(exc)
-                continue
-            self._set_port(port)
-            try:
-                self._handshake(timeout=1.0)
-            except TriggerBoardError as exc:
-                self.last_error = str(exc)
-                self._drop_port(port, None)
-                continue
-            self.counters.reconnects += 1
-            self._reset_pulse_tracking()
-            self._emit(BoardEvent("connected", f"{self.uri}: reconnected to {self.info.board_id}", time.monotonic_ns(),
-                                  {"board_id": self.info.board_id, "firmware": self.info.firmware, "reconnect": True}))
+            self._reconnect_once()
+
+    def _reconnect_once(self) -> None:
+        try:
+            port = self.link.open(self.baudrate)
+        except TriggerBoardError as exc:
+            self.last_error = str(exc)
+            return
+        try:
+            self._handshake(timeout=1.0)
+        except TriggerBoardError as exc:
+            self.last_error = str(exc)
+            self.link.drop(port, None)
+            return
+        self.counters.reconnects += 1
+        self._pulse_order.reset()
+        self._emit(BoardEvent("connected", f"{self.uri}: reconnected to {self.info.board_id}", time.monotonic_ns(),
+                              {"board_id": self.info.board_id, "firmware": self.info.firmware, "reconnect": True}))
 
     # --- incoming ---------------------------------------------------------------------------------
     def _dispatch(self, msg: Message, now: int) -> None:
@@ -475,7 +363,7 @@ class TriggerBoard:
                 self.counters.unexpected_replies += 1
                 return
             if slot.kind == "START" and kind == "OK":
-                self._reset_pulse_tracking()
+                self._pulse_order.reset()
             slot.reply = msg
             slot.recv_ns = now
             slot.event.set()
@@ -500,28 +388,10 @@ class TriggerBoard:
             self._emit(BoardEvent("boot", f"{self.uri}: the board restarted (firmware {msg['fw']})", now,
                                   {"firmware": str(msg["fw"]), "board_id": str(msg["board"])}))
 
-    def _reset_pulse_tracking(self) -> None:
-        self._next_pulse = 0
-        self._missing.clear()
-
     def _on_pulse(self, index: int, board_us: int, now: int) -> None:
-        late = False
-        if index == self._next_pulse:
-            self._next_pulse += 1
-        elif index > self._next_pulse:
-            gap = index - self._next_pulse
-            self.counters.missing_pulse_reports += gap
-            if len(self._missing) < 100_000:
-                self._missing.update(range(self._next_pulse, index))
-            self._next_pulse = index + 1
-        elif index in self._missing:
-            self._missing.discard(index)
-            self.counters.late_pulses += 1
-            late = True
-        else:
-            self.counters.duplicate_pulses += 1
-            return
-        self.counters.pulses += 1
+        late = self._pulse_order.accept(index)
+        if late is None:
+            return  # a duplicate report
         pulse = Pulse(index, board_us, now, late)
         for fn in list(self._pulse_listeners):
             try:
@@ -534,7 +404,7 @@ class TriggerBoard:
         for fn in list(self._event_listeners):
             try:
                 fn(event)
-            except Exception as exc:
+            except Exception as exc:  # a subscriber's bug must not stop the link
                 self.counters.listener_errors += 1
                 self.last_error = f"event subscriber failed: {exc!r}"
 
@@ -543,10 +413,3 @@ def _answers(request: str, reply: str) -> bool:
     if reply == "ERR":
         return True
     return reply in _REPLY_KINDS.get(request, {"OK"})
-
-
-def _close_quietly(port: serial.SerialBase) -> None:
-    try:
-        port.close()
-    except Exception:
-        pass

@@ -1,7 +1,8 @@
 """Errors of the sync layer (trigger boards, grouping)."""
+from common.errors import ReportedError
 
 
-class SyncError(Exception):
+class SyncError(ReportedError):
     exit_code = 1
 
 

@@ -18,69 +18,23 @@ A set is emitted once every camera is past its pulse (cameras deliver in order) 
 never before; a camera with nothing for a pulse leaves None there (a detected drop). Frames of two
 pulses never share a set: each set is one pulse, and a second frame for a pulse is set aside as a
 duplicate.
+
+The pieces: `sync.pulse_timeline` (the pulses of a train and their times), `sync.camera_track`
+(each camera's counters and device-clock line); this module matches frames to pulses and emits sets.
 """
 from __future__ import annotations
 
 import threading
-from collections import deque
 from dataclasses import dataclass, field
-from typing import Optional, Protocol
+from typing import Optional
 
 import numpy as np
 
+from sync.camera_track import HARDWARE, TIMED, CameraCounters, CameraTrack
 from sync.frames import Frame, FrameSet
-from sync.protocol import pulse_offset_us
+from sync.pulse_timeline import BoardClock, PulseTimeline
 
-HARDWARE = "hardware"
-TIMED = "timed"  # free-run or software-triggered: grouped by host time
-
-
-class BoardClock(Protocol):
-    ready: bool
-
-    def board_to_host_ns(self, board_us: float) -> int: ...
-
-    def host_to_board_us(self, host_ns: int) -> float: ...
-
-
-@dataclass
-class CameraCounters:
-    frames: int = 0  # received
-    grouped: int = 0  # placed in a set
-    drops: int = 0  # sets emitted without this camera
-    lost_frames: int = 0  # gaps in frame ids: exposures the camera made that never arrived
-    missed_triggers: int = 0  # pulses skipped without a gap in frame ids: the camera never exposed
-    duplicates: int = 0  # a second frame for a pulse already filled
-    unassigned: int = 0  # frames that fit no pulse (before the first, after the last, ambiguous)
-    reanchors: int = 0  # the device-time model was rebuilt from host time
-    ambiguous_anchors: int = 0  # frame ids and arrival times disagreed on the first pulse; arrival times won
-
-    def to_dict(self) -> dict:
-        return dict(self.__dict__)
-
-
-@dataclass
-class _Track:
-    name: str
-    mode: str
-    counters: CameraCounters = field(default_factory=CameraCounters)
-    pending: deque = field(default_factory=deque)  # frames waiting for a timeline
-    # hardware: device_ts_ns ~ dev_ref + offset_ns + slope * (board_us - board_ref)
-    anchored: bool = False
-    board_ref: int = 0
-    dev_ref: int = 0
-    offset_ns: float = 0.0
-    slope: float = 1000.0
-    pairs: deque = field(default_factory=lambda: deque(maxlen=64))  # (board_us - board_ref, device_ts - dev_ref)
-    last_pulse: Optional[int] = None
-    last_frame_id: Optional[int] = None  # of the last frame assigned
-    last_seen_id: Optional[int] = None  # of the last frame received
-    id_base: Optional[int] = 0  # frame id before the first exposure of this train (None: unknown)
-    suspicious: int = 0
-    # timed: frames not yet claimed by a set, by host exposure-start time
-    timed: deque = field(default_factory=deque)
-    past_ns: int = -(2**62)  # host exposure-start time of the newest frame
-    alive: bool = True
+__all__ = ["HARDWARE", "TIMED", "BoardClock", "CameraCounters", "FrameGrouper"]
 
 
 @dataclass
@@ -124,16 +78,11 @@ class FrameGrouper:
         self.rate_mhz = int(round(rate_hz * 1000))
         self.period_ns = 1e12 / self.rate_mhz
         self.max_wait_ns = int((max_wait_s if max_wait_s is not None else max(0.5, 4 * self.period_ns / 1e9)) * 1e9)
-        self.tracks = {name: _Track(name, mode) for name, mode in cameras.items()}
+        self.tracks = {name: CameraTrack(name, mode) for name, mode in cameras.items()}
         self._lock = threading.RLock()
-        # the pulse timeline of the current epoch
         self.epoch = 0
         self._base = 0  # set index of pulse 0 of this epoch
-        self._start_us: Optional[int] = None
-        self._events: dict[int, int] = {}  # pulse index -> board us (reported)
-        self._host: dict[int, int] = {}  # pulse index -> host ns (reference camera, no board)
-        self._max_pulse = -1
-        self._done: Optional[int] = None
+        self.timeline = PulseTimeline(self.rate_mhz, clock)  # the pulses of the current epoch
         self._next_emit = 0  # next pulse index to emit in this epoch
         self._sets: dict[int, _Pending] = {}
         self.emitted = 0
@@ -146,12 +95,8 @@ class FrameGrouper:
     def add_pulse(self, index: int, board_us: int) -> None:
         """A pulse the board reported (index counts from 0 in this epoch)."""
         with self._lock:
-            if index in self._events:
+            if not self.timeline.report(index, board_us):
                 return
-            self._events[index] = board_us
-            if self._start_us is None:
-                self._start_us = board_us - pulse_offset_us(index, self.rate_mhz)
-            self._max_pulse = max(self._max_pulse, index)
             if self.clock is not None and self.clock.ready:
                 self.mapped_pulses.append((self.epoch, index, self.clock.board_to_host_ns(board_us)))
             self._retry_pending()
@@ -159,8 +104,7 @@ class FrameGrouper:
     def end_of_train(self, pulses: int) -> None:
         """The board ended the train after `pulses` pulses (DONE)."""
         with self._lock:
-            self._done = pulses
-            self._max_pulse = max(self._max_pulse, pulses - 1)
+            self.timeline.end(pulses)
 
     def new_epoch(self) -> None:
         """A new pulse train with indices from 0 again (board restarted, or START after STOP)."""
@@ -168,22 +112,12 @@ class FrameGrouper:
             self._retry_pending(force=True)
             self._emit_ready(now_ns=None, flush=True, out=self._flushed)
             self.epoch += 1
-            self._base = self._base + max(self._next_emit, self._max_pulse + 1)
-            self._start_us = None
-            self._events.clear()
-            self._host.clear()
-            self._max_pulse = -1
-            self._done = None
+            self._base = self._base + max(self._next_emit, self.timeline.max_pulse + 1)
+            self.timeline.clear()
             self._next_emit = 0
             self._sets.clear()
             for t in self.tracks.values():
-                t.id_base = t.last_seen_id  # ids of the new train count on from here
-                t.anchored = False
-                t.pairs.clear()
-                t.last_pulse = None
-                t.pending.clear()
-                t.timed.clear()
-                t.past_ns = -(2**62)
+                t.new_train()
 
     def camera_lost(self, name: str) -> None:
         """The camera is gone: sets stop waiting for it."""
@@ -220,7 +154,7 @@ class FrameGrouper:
     def settled(self) -> bool:
         """Every pulse known to have fired has been emitted as a set."""
         with self._lock:
-            return self._next_emit > self._max_pulse
+            return self._next_emit > self.timeline.max_pulse
 
     def flush(self) -> list[FrameSet]:
         """Every remaining set of pulses known to have fired (end of run)."""
@@ -249,37 +183,9 @@ class FrameGrouper:
                 },
             }
 
-    # --- the pulse timeline -----------------------------------------------------------------------
-    def _board_time(self, k: int) -> float:
-        t = self._events.get(k)
-        if t is not None:
-            return float(t)
-        return float(self._start_us + pulse_offset_us(k, self.rate_mhz))
-
-    def _pulse_host(self, k: int) -> int:
-        if self.clock is None:
-            return self._host[k]
-        return self.clock.board_to_host_ns(self._board_time(k))
-
-    def _pulse_at_or_before_board(self, board_us: float) -> int:
-        k = int(np.floor((board_us - self._start_us) * self.rate_mhz / 1e9))
-        while self._board_time(k + 1) <= board_us:
-            k += 1
-        while k >= 0 and self._board_time(k) > board_us:
-            k -= 1
-        return k
-
-    def _nearest_pulse(self, board_us: float) -> int:
-        k = int(round((board_us - self._start_us) * self.rate_mhz / 1e9))
-        return min((k - 1, k, k + 1), key=lambda j: abs(self._board_time(j) - board_us))
-
-    def _fired(self, k: int) -> bool:
-        """Whether pulse k is known to have fired."""
-        return 0 <= k <= self._max_pulse and (self._done is None or k < self._done)
-
     # --- hardware-triggered cameras ---------------------------------------------------------------
     def _retry_pending(self, now_ns: Optional[int] = None, force: bool = False) -> None:
-        if self._start_us is None or self.clock is None or not self.clock.ready:
+        if not self.timeline.started or self.clock is None or not self.clock.ready:
             return
         for track in self.tracks.values():
             if not track.pending:
@@ -287,7 +193,9 @@ class FrameGrouper:
             if not track.anchored:
                 # anchor on a few frames; a lone frame waits a little for company
                 old = now_ns is not None and now_ns - track.pending[0].host_ts_ns > self.max_wait_ns // 2
-                if len(track.pending) < self.ANCHOR_FRAMES and not (force or old):
+                # a train that has ended with fewer pulses than ANCHOR_FRAMES sends no more company
+                wanted = self.ANCHOR_FRAMES if self.timeline.done is None else max(1, min(self.ANCHOR_FRAMES, self.timeline.done))
+                if len(track.pending) < wanted and not (force or old):
                     continue
                 self._anchor(track, list(track.pending), decide=force or old)
                 if not track.anchored:
@@ -297,7 +205,7 @@ class FrameGrouper:
                 self._assign_hardware(track, frame)
                 track.last_frame_id = frame.frame_id
 
-    def _anchor(self, track: _Track, frames: list[Frame], decide: bool = True) -> None:
+    def _anchor(self, track: CameraTrack, frames: list[Frame], decide: bool = True) -> None:
         """Tie the camera's clock to the pulse timeline: which pulse did its first frame answer?
 
         Two bounds, with the pulse steps between the frames from their device timestamps. Arrival:
@@ -316,13 +224,13 @@ class FrameGrouper:
             exposure_ns = int((frame.exposure_us or 0.0) * 1000)
             board_limit = self.clock.host_to_board_us(frame.host_ts_ns - exposure_ns + tolerance_ns)
             steps = int(round((frame.device_ts_ns - first.device_ts_ns) / self.period_ns))
-            bound = self._pulse_at_or_before_board(board_limit) - steps
+            bound = self.timeline.at_or_before(board_limit) - steps
             upper = bound if upper is None else min(upper, bound)
             if track.id_base is not None:
                 low = frame.frame_id - track.id_base - 1 - steps
                 lower = low if lower is None else max(lower, low)
-        if self._done is not None:
-            upper = min(upper, self._done - 1)
+        if self.timeline.done is not None:
+            upper = min(upper, self.timeline.done - 1)
         if upper < 0:
             track.counters.unassigned += 1  # exposed before the first pulse: not ours
             track.pending.popleft()
@@ -335,24 +243,18 @@ class FrameGrouper:
             if not decide and len(frames) < self.ANCHOR_PATIENCE:
                 return  # wait for more frames
             track.counters.ambiguous_anchors += 1
-        track.anchored = True
-        track.board_ref = int(self._board_time(k0))
-        track.dev_ref = first.device_ts_ns
-        track.offset_ns = 0.0
-        track.slope = 1000.0
-        track.pairs.clear()
-        track.suspicious = 0
+        track.anchor(int(self.timeline.board_time(k0)), first.device_ts_ns)
 
-    def _assign_hardware(self, track: _Track, frame: Frame) -> None:
+    def _assign_hardware(self, track: CameraTrack, frame: Frame) -> None:
         if not track.anchored:
             self._anchor(track, [frame], decide=True)
             if not track.anchored:
                 return
         tolerance_ns = min(2_000_000, int(self.period_ns / 4))
-        predicted = track.board_ref + (frame.device_ts_ns - track.dev_ref - track.offset_ns) / track.slope
-        k = self._nearest_pulse(predicted)
-        residual_ns = (predicted - self._board_time(k)) * track.slope
-        arrived_early = self._pulse_host(k) > frame.host_ts_ns + tolerance_ns  # before its pulse fired?
+        predicted = track.predicted_board_us(frame.device_ts_ns)
+        k = self.timeline.nearest(predicted)
+        residual_ns = (predicted - self.timeline.board_time(k)) * track.slope
+        arrived_early = self.timeline.host_ns(k) > frame.host_ts_ns + tolerance_ns  # before its pulse fired?
         if abs(residual_ns) > self.period_ns / 4 or arrived_early or k < 0:
             track.counters.unassigned += 1
             track.suspicious += 1
@@ -361,9 +263,7 @@ class FrameGrouper:
                 track.counters.reanchors += 1
             return
         track.suspicious = 0
-        board_k = self._board_time(k)
-        track.pairs.append((board_k - track.board_ref, float(frame.device_ts_ns - track.dev_ref)))
-        self._refit(track)
+        track.add_pair(self.timeline.board_time(k), frame.device_ts_ns)
         # frame ids against pulses: a gap in ids is a lost frame, a pulse skipped without one a missed trigger
         if track.last_pulse is not None and track.last_frame_id is not None and k > track.last_pulse:
             skipped = k - track.last_pulse - 1
@@ -372,33 +272,15 @@ class FrameGrouper:
                 track.counters.missed_triggers += skipped - lost
         self._place(track, k, frame, residual_ns)
 
-    def _refit(self, track: _Track) -> None:
-        if len(track.pairs) < 2:
-            x, y = track.pairs[0]
-            track.offset_ns, track.slope = y - 1000.0 * x, 1000.0
-            return
-        xy = np.array(track.pairs, dtype=np.float64)
-        x, y = xy[:, 0], xy[:, 1]
-        if np.ptp(x) < 0.2e6:  # under 0.2 s: too short to tell the slope from jitter
-            track.offset_ns, track.slope = float(np.mean(y - 1000.0 * x)), 1000.0
-            return
-        xm, ym = x.mean(), y.mean()
-        slope = float(np.sum((x - xm) * (y - ym)) / np.sum((x - xm) ** 2))
-        track.slope, track.offset_ns = slope, float(ym - slope * xm)
-
     # --- timed cameras and the reference camera ---------------------------------------------------
     def _exposure_start_host(self, frame: Frame) -> int:
         return frame.host_ts_ns - int((frame.exposure_us or 0.0) * 1000)
 
-    def _add_reference(self, track: _Track, frame: Frame) -> None:
-        k = self._max_pulse + 1
-        self._host[k] = self._exposure_start_host(frame)
-        self._max_pulse = k
-        if self._start_us is None:
-            self._start_us = 0
+    def _add_reference(self, track: CameraTrack, frame: Frame) -> None:
+        k = self.timeline.add_instant(self._exposure_start_host(frame))
         self._place(track, k, frame, 0.0)
 
-    def _add_timed(self, track: _Track, frame: Frame) -> None:
+    def _add_timed(self, track: CameraTrack, frame: Frame) -> None:
         t = self._exposure_start_host(frame)
         track.timed.append((t, frame))
         track.past_ns = max(track.past_ns, t)
@@ -406,9 +288,9 @@ class FrameGrouper:
             track.timed.popleft()
             track.counters.unassigned += 1
 
-    def _claim_timed(self, track: _Track, k: int) -> None:
+    def _claim_timed(self, track: CameraTrack, k: int) -> None:
         """Give set k the timed camera's frame nearest the pulse, within half a period."""
-        host_k = self._pulse_host(k)
+        host_k = self.timeline.host_ns(k)
         half = self.period_ns / 2
         best = None
         while track.timed and track.timed[0][0] < host_k - half:
@@ -427,11 +309,11 @@ class FrameGrouper:
                     track.counters.unassigned += 1
             self._place(track, k, frame, float(t - host_k))
 
-    def _timed_past(self, track: _Track, k: int) -> bool:
-        return track.past_ns > self._pulse_host(k) + self.period_ns / 2
+    def _timed_past(self, track: CameraTrack, k: int) -> bool:
+        return track.past_ns > self.timeline.host_ns(k) + self.period_ns / 2
 
     # --- sets -------------------------------------------------------------------------------------
-    def _place(self, track: _Track, k: int, frame: Frame, offset_ns: float) -> None:
+    def _place(self, track: CameraTrack, k: int, frame: Frame, offset_ns: float) -> None:
         if k < self._next_emit:
             track.counters.duplicates += 1  # its set is gone already: a late second frame
             return
@@ -444,7 +326,7 @@ class FrameGrouper:
         if track.mode == HARDWARE or track.name == self.reference:
             track.last_pulse = k if track.last_pulse is None else max(track.last_pulse, k)
 
-    def _camera_done_with(self, track: _Track, k: int, pending: Optional[_Pending]) -> bool:
+    def _camera_done_with(self, track: CameraTrack, k: int, pending: Optional[_Pending]) -> bool:
         if pending is not None and track.name in pending.frames:
             return True
         if not track.alive:
@@ -454,9 +336,9 @@ class FrameGrouper:
         return self._timed_past(track, k)
 
     def _emit_ready(self, now_ns: Optional[int], flush: bool, out: list) -> None:
-        if self._start_us is None or (self.clock is not None and not self.clock.ready):
+        if not self.timeline.started or (self.clock is not None and not self.clock.ready):
             return
-        while self._fired(self._next_emit):
+        while self.timeline.fired(self._next_emit):
             k = self._next_emit
             pending = self._sets.get(k)
             for track in self.tracks.values():
@@ -465,7 +347,7 @@ class FrameGrouper:
                     pending = self._sets.get(k)
             waiting = [t for t in self.tracks.values() if not self._camera_done_with(t, k, pending)]
             if waiting and not flush:
-                if now_ns is None or now_ns < self._pulse_host(k) + self.max_wait_ns:
+                if now_ns is None or now_ns < self.timeline.host_ns(k) + self.max_wait_ns:
                     return
             self._sets.pop(k, None)
             out.append(self._make_set(k, pending))
@@ -483,7 +365,7 @@ class FrameGrouper:
                 frames[name] = slot.frame
                 track.counters.grouped += 1
                 offsets.append(slot.offset_ns)
-        fs = FrameSet(index=self._base + k, frames=frames, host_ts_ns=self._pulse_host(k),
+        fs = FrameSet(index=self._base + k, frames=frames, host_ts_ns=self.timeline.host_ns(k),
                       trigger_index=k if self.clock is not None else None, train=self.epoch)
         self.emitted += 1
         if fs.complete:

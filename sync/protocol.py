@@ -196,6 +196,9 @@ class LineCounters:
     good: int = 0
     rejected: dict[str, int] = field(default_factory=lambda: {r: 0 for r in REJECTIONS})
     overlong: int = 0  # bytes discarded because no newline came within a line's length
+    # lines the parser failed on with something other than ProtocolError: a bug in parse_line, not
+    # noise on the link. Kept apart from the rejections so a test can demand it stays 0.
+    parser_errors: int = 0
     last_error: Optional[str] = None
 
     @property
@@ -208,11 +211,14 @@ class LineCounters:
 
     def to_dict(self) -> dict:
         return {"lines": self.lines, "good": self.good, "corrupt": self.corrupt, "unknown": self.unknown,
-                "rejected": dict(self.rejected), "overlong": self.overlong}
+                "rejected": dict(self.rejected), "overlong": self.overlong, "parser_errors": self.parser_errors}
 
 
 class LineReader:
     """Split a byte stream into lines and parse them; bad input is counted, never raised.
+
+    Every line read is counted once: good, rejected (by ProtocolError reason), or a parser error
+    (parse_line raised something else: a bug, counted apart and kept off the live link).
 
     `feed(data)` returns the messages completed by `data`. A line longer than MAX_LINE without a
     newline is discarded up to the next newline (a stuck or noisy line cannot grow the buffer).
@@ -259,8 +265,12 @@ class LineReader:
         except ProtocolError as exc:
             self._reject(exc.reason, str(exc))
             return None
-        except Exception as exc:  # a parser bug must not take the link down; count it as corrupt
-            self._reject("syntax", f"unparseable line ({type(exc).__name__})")
+        except Exception as exc:  # a parser bug must not take the link down; counted apart from noise
+            self.counters.parser_errors += 1
+            detail = f"parser error on {repr(raw)[:60]}: {exc!r}"  # repr first: the net must not trip itself
+            self.counters.last_error = detail
+            if self.on_reject is not None:  # the other end still gets its answer: this line was not read
+                self.on_reject("syntax", detail)
             return None
         self.counters.good += 1
         return msg

@@ -12,13 +12,21 @@ device, so a camera that vanished is reported as disconnected rather than merely
 from __future__ import annotations
 
 import time
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any
 
 from rig.cameras.base import Camera, DeviceInfo
 from rig.cameras.pixels import BYTES_PER_PIXEL, buffer_to_image
-from rig.config import CameraConfig
-from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceError, DeviceNotFound
+from rig.errors import (
+    CameraDisconnected,
+    CameraTimeout,
+    ConfigError,
+    DeviceError,
+    DeviceNotFound,
+)
 from sync.frames import Frame
+
+if TYPE_CHECKING:  # annotations only: rig.config imports the sim backend to check [sim] options
+    from rig.config import CameraConfig
 
 SCHEME = "aravis"
 N_BUFFERS = 16

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import abc
 from dataclasses import asdict, dataclass, field
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
-from rig.config import CameraConfig
 from sync.frames import Frame
+
+if TYPE_CHECKING:  # annotations only: rig.config imports the sim backend to check [sim] options
+    from rig.config import CameraConfig
 
 
 @dataclass
@@ -58,6 +60,10 @@ class Camera(abc.ABC):
         self._last_unwrapped = 0
 
     # lifecycle -----------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        """Slow work before acquisition (a sim camera pre-renders its loop); the session prepares
+        every camera before it starts any, so that they start within moments of each other."""
+
     @abc.abstractmethod
     def start(self) -> None:
         """Begin acquisition (in trigger modes the camera then waits for triggers)."""

@@ -1,26 +1,25 @@
 """Pixel-format handling shared by the backends: raw sensor buffers to Frame images.
 
-Bayer data becomes RGB (the Frame keeps the sensor's pixel format name). OpenCV names Bayer
-patterns by the 2x2 block starting at pixel (1, 1), GenICam by the block at (0, 0), so GenICam
-BayerRG (R at the top-left) is OpenCV's BayerBG.
+Bayer data becomes RGB (the Frame keeps the sensor's pixel format name) through common.bayer, the
+one mosaic/demosaic of the project: its demosaic keeps every sensor sample, so a recording can store
+the mosaic and read back the identical RGB. `mosaic` and `demosaic` here are that module's functions
+(they take a Bayer pixel format such as "BayerRG8" as well as a bare pattern).
 """
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-_BAYER_TO_RGB = {
-    "BayerRG8": cv2.COLOR_BayerBG2RGB,
-    "BayerBG8": cv2.COLOR_BayerRG2RGB,
-    "BayerGR8": cv2.COLOR_BayerGB2RGB,
-    "BayerGB8": cv2.COLOR_BayerGR2RGB,
-}
+from common.bayer import demosaic, mosaic
 
+BAYER_FORMATS = ("BayerRG8", "BayerGR8", "BayerGB8", "BayerBG8")
 BYTES_PER_PIXEL = {"Mono8": 1, "Mono16": 2, "RGB8": 3, "BayerRG8": 1, "BayerGR8": 1, "BayerGB8": 1, "BayerBG8": 1}
+
+__all__ = ["BAYER_FORMATS", "BYTES_PER_PIXEL", "buffer_to_image", "demosaic", "from_rgb", "is_bayer", "mosaic"]
 
 
 def is_bayer(pixel_format: str) -> bool:
-    return pixel_format in _BAYER_TO_RGB
+    return pixel_format in BAYER_FORMATS
 
 
 def buffer_to_image(data, width: int, height: int, pixel_format: str, copy: bool = True) -> np.ndarray:
@@ -41,31 +40,6 @@ def buffer_to_image(data, width: int, height: int, pixel_format: str, copy: bool
     if is_bayer(pixel_format):
         return demosaic(mono, pixel_format)
     return keep(mono)
-
-
-def demosaic(raw: np.ndarray, pixel_format: str) -> np.ndarray:
-    """Bayer mosaic to RGB, keeping every sensor sample exactly where it was.
-
-    OpenCV treats the outermost rows and columns differently from the interior; a 2-pixel mirror
-    border (which keeps the colour phase) gives every pixel the interior treatment, so
-    `mosaic(demosaic(raw)) == raw` and a recording can store the mosaic without loss.
-    """
-    padded = cv2.copyMakeBorder(raw, 2, 2, 2, 2, cv2.BORDER_REFLECT_101)
-    return cv2.cvtColor(padded, _BAYER_TO_RGB[pixel_format])[2:-2, 2:-2].copy()
-
-
-def mosaic(rgb: np.ndarray, pixel_format: str) -> np.ndarray:
-    """Sample an RGB image through a Bayer colour filter array (GenICam pattern naming)."""
-    pattern = pixel_format[5:7]  # "RG", "GR", "GB", "BG"
-    channel = {"R": 0, "G": 1, "B": 2}
-    top = pattern
-    bottom = {"RG": "GB", "BG": "GR", "GR": "BG", "GB": "RG"}[pattern]
-    out = np.empty(rgb.shape[:2], dtype=rgb.dtype)
-    out[0::2, 0::2] = rgb[0::2, 0::2, channel[top[0]]]
-    out[0::2, 1::2] = rgb[0::2, 1::2, channel[top[1]]]
-    out[1::2, 0::2] = rgb[1::2, 0::2, channel[bottom[0]]]
-    out[1::2, 1::2] = rgb[1::2, 1::2, channel[bottom[1]]]
-    return out
 
 
 def from_rgb(rgb: np.ndarray, pixel_format: str) -> np.ndarray:

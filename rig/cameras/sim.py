@@ -18,16 +18,20 @@ import queue
 import threading
 import time
 import zlib
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import numpy as np
 
 from rig.cameras.base import Camera, DeviceInfo
-from rig.cameras.pixels import buffer_to_image, from_rgb, is_bayer
-from rig.config import CameraConfig
+from rig.cameras.pixels import demosaic, from_rgb, is_bayer
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError
+from rig.progress import ProgressBar
 from simulator.options import with_defaults
+from simulator.rig import camera_names
 from sync.frames import Frame, monotonic_ns
+
+if TYPE_CHECKING:  # annotations only: rig.config imports the sim backend to check [sim] options
+    from rig.config import CameraConfig
 
 SCHEME = "sim"
 DEFAULT_NAMES = ("left", "sup1", "sup2", "sup3", "sup4", "right")
@@ -118,12 +122,20 @@ class SimCamera(Camera):
         return int(rel * (1.0 + self.opts["drift_ppm"] * 1e-6)) + int(self.opts["clock_offset_ns"])
 
     # --- lifecycle -------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        """Make the pre-rendered loop, if the scene is replayed from one: replay is real-time,
+        rendering is not. The loop cache makes a repeated start quick; a first one shows a progress
+        bar on a terminal. `start` does it too; a rig prepares all its cameras first, so that they
+        then start together."""
+        if self.sensor is not None and getattr(self.sensor, "loop_frames", 0):
+            with ProgressBar(f"{self.name}: pre-rendering the simulated scene") as bar:
+                self.sensor.prerender(self.exposure_s, progress=bar.update)
+
     def start(self) -> None:
         self._check_alive()
         if self._running:
             return
-        if self.sensor is not None and getattr(self.sensor, "loop_frames", 0):
-            self.sensor.prerender(self.exposure_s)  # before the first trigger: replay is real-time, rendering is not
+        self.prepare()
         self._running = True
         self._start_ns = monotonic_ns()
         self._thread = threading.Thread(target=self._run, name=f"sim-camera-{self.name}", daemon=True)
@@ -235,8 +247,8 @@ class SimCamera(Camera):
         t = (expose_ns - SIM_EPOCH_NS) / 1e9
         rgb = self.source(t, self.exposure_s, self.rng)
         s = self.settings
-        raw = from_rgb(rgb, s.pixel_format)
-        image = buffer_to_image(raw.tobytes(), s.width, s.height, s.pixel_format) if is_bayer(s.pixel_format) else raw
+        raw = from_rgb(rgb, s.pixel_format)  # what the sensor sends, decoded as a real backend decodes it
+        image = demosaic(raw, s.pixel_format) if is_bayer(s.pixel_format) else raw
         frame = Frame(
             image=image,
             camera=self.name,
@@ -251,3 +263,82 @@ class SimCamera(Camera):
             self._out.put_nowait(frame)
         except queue.Full:
             pass  # host did not keep up: this frame is lost, the id gap shows it
+
+
+def emulated_trigger_board(uri: str, options: dict, outputs: list[Callable[[int, int], None]]):
+    """The emulated trigger board of a `sim://` trigger URI, opened, its pulse output wired to
+    `outputs` (the hardware-trigger inputs of sim cameras); the session talks to it over its port
+    (`.url`) as to a real board. `options`: the trigger's `sim = {...}` table."""
+    from simulator.trigger_board import TriggerBoardEmulator
+
+    emulator = TriggerBoardEmulator(options, board_id="SIM-" + (uri.split("://", 1)[1].strip("/") or "trigger").upper())
+    for output in outputs:
+        emulator.add_pulse_output(output)
+    try:
+        emulator.open()
+    except BaseException:
+        emulator.close()
+        raise
+    return emulator
+
+
+def sim_rig_config(n_cameras: int = 2, width: int = 640, height: int = 360, fps: float = 30.0,
+                   trigger: str = "hardware", pixel_format: str = "RGB8") -> dict[str, Any]:
+    """The configuration of a simulated rig, as `rig config init --sim` and `rig demo` write it: cameras named as the virtual rig names them, fired by the emulated trigger board."""
+    cameras = []
+    for i, name in enumerate(camera_names(n_cameras)):
+        role = name if name in ("left", "right") else "supervision"
+        cameras.append({
+            "name": name,
+            "uri": f"sim://{name}",
+            "role": role,
+            "width": width,
+            "height": height,
+            "pixel_format": pixel_format,
+            "fps": fps,
+            "trigger": trigger,
+            "exposure_us": 5000.0,
+            "gain": 0.0,
+            "sim": {"seed": i},
+        })
+    cfg = {"rig": {"name": f"sim-{n_cameras}cam", "storage": "recordings"}, "sim": {"seed": 0, "people": 2, "loop_frames": 30}, "cameras": cameras}
+    if trigger == "hardware":
+        cfg["trigger"] = {"uri": "sim://trigger", "rate_hz": fps, "pulse_width_us": 100.0}
+    return cfg
+
+
+# ---- the simulator as the rest of rig sees it: everything rig needs of the simulator goes through
+# these functions, so that the simulator stays out of the real-camera path (tests/test_layering.py).
+
+def check_options(table: dict, kind: str) -> None:
+    """Validate a `[sim]` table of a rig config (`kind`: "rig", "camera" or "trigger"); ValueError
+    names the bad key. The simulator owns what the options mean."""
+    from simulator.options import validate_options
+
+    validate_options(table, kind)
+
+
+def take_truth(cfg) -> dict:
+    """What a take of simulated cameras carries so that its ground truth can be rendered later:
+    the scene's options and the exact cameras. Empty when the rig has no simulated camera."""
+    if not any(c.scheme == "sim" for c in cfg.cameras):
+        return {}
+    from simulator.sensor import sim_rig
+
+    rig = sim_rig(cfg)
+    return {"simulator": {"scene": dict(rig.options), "cameras": rig.calibration.to_dict()["cameras"]}}
+
+
+class GroundTruth:
+    """Renders a simulated take's exact depth on demand from what `take_truth` recorded."""
+
+    def __init__(self, scene_options: dict):
+        from simulator.scene import Scene
+
+        self.scene = Scene.from_options(scene_options)
+
+    def depth(self, model, sim_time_s: float):
+        """Depth in metres along the optical axis (0 = nothing) seen by `model` at scene time."""
+        from simulator.render import render
+
+        return render(self.scene, model, float(sim_time_s)).depth

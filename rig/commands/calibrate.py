@@ -69,7 +69,7 @@ def _status():
 def cmd_board(args: argparse.Namespace) -> int:
     from calibration.boards import load_board
     from calibration.printable import write_board
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
 
     board = load_board(args.board)
     info = write_board(board, args.output, args.dpi)
@@ -86,7 +86,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from calibration.images import detect_images, find_images
     from calibration.report import format_report
     from calibration.solve import Options, calibrate_rig
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
 
     board = load_board(args.board)
     images = find_images(args.images)
@@ -125,7 +125,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from calibration.camera import RigCalibration
     from calibration.report import format_report
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
 
     rig = RigCalibration.load(args.calibration)
     if args.json:
@@ -140,7 +140,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from calibration.camera import RigCalibration
     from calibration.export import export
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
 
     rig = RigCalibration.load(args.calibration)
     files = export(rig, args.format, args.output)
@@ -164,7 +164,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     from calibration.detect import make_detector, to_gray
     from calibration.selection import ViewSelector
     from rig.cameras import open_camera
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
     from rig.config import load_config
     from rig.errors import ConfigError, StorageError
 

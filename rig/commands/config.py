@@ -29,8 +29,8 @@ def register(sub) -> None:
 
 
 def cmd_init(args: argparse.Namespace) -> int:
+    from rig.cameras.sim import sim_rig_config
     from rig.config import dump_config, parse_config
-    from rig.simrig import sim_rig_config
 
     if args.file.exists() and not args.force:
         raise ConfigError(f"{args.file}: already exists (use --force to overwrite)")
@@ -47,7 +47,7 @@ def cmd_init(args: argparse.Namespace) -> int:
 def cmd_check(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
     from rig.config import load_config
 
     cfg = load_config(args.file)

@@ -29,26 +29,24 @@ def register(sub) -> None:
 
 def _run(argv: list[str]) -> dict:
     """Run one `rig` command in this process, echoing it; returns its --json output."""
-    from rig.cli import main
+    from rig.commands import dispatch
     from rig.errors import RigError
 
     print(f"$ rig {' '.join(argv)}", flush=True)
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        rc = main(argv + ["--json"])
+        rc = dispatch(argv + ["--json"])
     if rc != 0:
         raise RigError(f"demo step `rig {' '.join(argv)}` failed (exit {rc})")
     return json.loads(buf.getvalue())
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from calibration.camera import RigCalibration
-    from calibration.geometry import rotation_angle_deg
+    from calibration.compare import describe, errors_against_truth
+    from rig.cameras.sim import sim_rig_config
     from rig.config import dump_config, parse_config
     from rig.errors import ConfigError
-    from rig.simrig import sim_rig_config
     from simulator.scene import default_board
     from simulator.sensor import sim_rig
 
@@ -78,11 +76,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     res = _run(["calibrate", "run", "--images", str(views), "--board", str(board_file), "-o", str(calib_file)])
     calib = RigCalibration.load(calib_file)
     truth = sim_rig(parse_config(board_rig)).calibration
-    worst = _compare(calib, truth, rotation_angle_deg, np)
+    worst = errors_against_truth(calib, truth).worst  # both in the calibration's frame (its left camera's)
     print(f"     kept {cap.get('views_kept')} views; RMS {', '.join(f'{k} {v:.2f}' for k, v in res['rms_px'].items())} px; "
           f"stereo RMS {res['stereo_rms_px']:.2f} px; baseline {res['baseline_m'] * 1000:.1f} mm")
-    print(f"     against the simulator's exact cameras: focal {worst['focal_pct']:.3f}%, principal point {worst['pp_px']:.2f} px, "
-          f"rotation {worst['rot_deg']:.3f} deg, position {worst['pos_mm']:.2f} mm (worst camera)")
+    print(f"     against the simulator's exact cameras (worst camera): {describe(worst)}")
 
     # 3. the take, with the calibration
     data["rig"]["calibration"] = calib_file.name
@@ -98,23 +95,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"4/4  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
           f"skew p99 {val['skew_us'].get('p99', 0):.0f} us, calibrated: {val['calibrated']}")
     print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")
-    print(f"next: `rig record validate {take}`; read it for training with rig.dataset.Sequence('{take}');"
+    print(f"next: `rig record validate {take}`; read it for training with rig.storage.dataset.Sequence('{take}');"
           f" export the calibration with `rig calibrate export {calib_file} --format colmap -o OUT`")
     return 0 if val["readable"] else 1
-
-
-def _compare(calib, truth, rotation_angle_deg, np) -> dict:
-    """Worst per-camera error of a calibration (left camera at the origin) against the exact rig."""
-    ref = truth["left"]
-    worst = {"focal_pct": 0.0, "pp_px": 0.0, "rot_deg": 0.0, "pos_mm": 0.0}
-    for cam in calib.cameras:
-        gt = truth[cam.name]
-        R_rel = gt.R @ ref.R.T  # truth expressed in the left camera's frame
-        t_rel = gt.t - R_rel @ ref.t
-        c_est = -cam.R.T @ cam.t
-        c_gt = -R_rel.T @ t_rel
-        worst["focal_pct"] = max(worst["focal_pct"], 100 * abs(cam.fx / gt.fx - 1))
-        worst["pp_px"] = max(worst["pp_px"], float(np.hypot(cam.cx - gt.cx, cam.cy - gt.cy)))
-        worst["rot_deg"] = max(worst["rot_deg"], rotation_angle_deg(cam.R, R_rel))
-        worst["pos_mm"] = max(worst["pos_mm"], 1000 * float(np.linalg.norm(c_est - c_gt)))
-    return worst

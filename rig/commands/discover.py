@@ -13,7 +13,7 @@ def register(sub) -> None:
 
 def cmd_discover(args: argparse.Namespace) -> int:
     from rig.cameras import discover_all
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
 
     problems: list[str] = []
     devices = discover_all(problems)

@@ -17,9 +17,9 @@ def register(sub) -> None:
 
 
 def cmd_grab(args: argparse.Namespace) -> int:
-    from rig.cli import emit_json
+    from rig.capture.grab import grab
+    from rig.commands._output import emit_json
     from rig.config import load_config
-    from rig.grab import grab
 
     cfg = load_config(args.config)
     result = grab(cfg, args.n, args.out, timeout=args.timeout)

@@ -72,12 +72,12 @@ def _status():
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from inference.checkpoint import checkpoint_record, load_checkpoint
     from inference.config import ModelConfig, Sizes
     from inference.errors import InferenceError
     from inference.export import export_onnx
-    from inference.model import build_model
-    from rig.cli import emit_json
+    from inference.model.checkpoint import checkpoint_record, load_checkpoint
+    from inference.model.pipeline import build_model
+    from rig.commands._output import emit_json
 
     if args.opset < 18:
         raise InferenceError(f"--opset {args.opset}: the pipeline needs opset 18 or later")
@@ -153,11 +153,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from inference.checkpoint import model_from_record
     from inference.errors import InferenceError
+    from inference.model.checkpoint import model_from_record
     from inference.runtime import NovelViewPipeline
-    from inference.synthetic import example_inputs
-    from rig.cli import emit_json
+    from inference.runtime.synthetic import example_inputs
+    from rig.commands._output import emit_json
 
     pipe = NovelViewPipeline(args.model, providers=_providers(args.providers))
     cfg = pipe.info.config
@@ -200,7 +200,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from inference.benchmark import format_table, run_benchmark
     from inference.errors import InferenceError
-    from rig.cli import emit_json
+    from rig.commands._output import emit_json
 
     sizes = [x.strip() for x in args.size.split(",") if x.strip()]
     bad = [x for x in sizes if x not in SIZES]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
@@ -29,9 +30,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         return _repair(args)
     if args.config is None or args.out is None:
         raise ConfigError("record: needs -c RIG.toml and -o DIR (or: rig record validate|repair DIR)")
-    from rig.record import record_rig
-
-    return record_rig(args)
+    return _record(args)
 
 
 def _need_dir(args) -> Path:
@@ -45,8 +44,8 @@ def _need_dir(args) -> Path:
 
 
 def _validate(args) -> int:
-    from rig.cli import emit_json
-    from rig.sequence import validate
+    from rig.commands._output import emit_json
+    from rig.storage.validate import validate
 
     v = validate(_need_dir(args), check_pixels=args.pixels)
     if args.json:
@@ -72,12 +71,44 @@ def _validate(args) -> int:
 
 
 def _repair(args) -> int:
-    from rig.cli import emit_json
-    from rig.sequence import repair
+    from rig.commands._output import emit_json
+    from rig.storage.validate import repair
 
     r = repair(_need_dir(args))
     if args.json:
         emit_json(r)
     else:
         print(f"{r['path']}: kept {r['kept_sets']} sets, removed {r['removed_bytes']} bytes of torn index")
+    return 0
+
+
+def _stop_on_sigterm(signum, frame) -> None:
+    """`kill` (SIGTERM) ends a take like Ctrl-C: every set already written stays valid."""
+    raise KeyboardInterrupt
+
+
+def _record(args) -> int:
+    from rig.capture.record import record
+    from rig.commands._output import emit_json
+    from rig.config import load_config
+    from rig.progress import StatusLine
+
+    cfg = load_config(args.config)
+    status = StatusLine(sys.stderr)
+    signal.signal(signal.SIGTERM, _stop_on_sigterm)
+    result = record(cfg, args.out, seconds=args.seconds, sets=args.sets, status=status)
+    status.done()
+    d = result.to_dict()
+    if args.json:
+        emit_json(d)
+    else:
+        print(f"recorded {d['sets']} sets ({d['complete_sets']} complete) in {d['seconds']:.1f} s to {result.out}: "
+              f"{d['sets_per_s']:.1f} sets/s, {d['mb_per_s']:.1f} MB/s, frames lost {sum(result.frames_lost.values())}")
+        for n in result.frames:
+            print(f"  {n}: {result.frames[n]} frames, {result.drops.get(n, 0)} dropped by the camera link")
+        print(f"next: rig record validate {result.out}")
+    for e in result.errors:
+        print(f"rig: error: {e}", file=sys.stderr)
+    if result.errors:
+        return 1
     return 0

@@ -42,7 +42,7 @@ def cmd_snapshot(args: argparse.Namespace) -> int:
     if skipped:
         summary["skipped"] = skipped
     if args.json:
-        from rig.cli import emit_json
+        from rig.commands._output import emit_json
 
         emit_json(summary)
     else:

@@ -18,10 +18,10 @@ def register(sub) -> None:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from rig.cli import emit_json
+    from rig.capture.sync_check import sync_check
+    from rig.commands._output import emit_json
     from rig.config import load_config
     from rig.progress import StatusLine
-    from rig.sync_check import sync_check
 
     cfg = load_config(args.config)
     status = StatusLine(sys.stderr)

@@ -1,17 +1,15 @@
 """`rig calibrate capture` on a simulated rig, and the rule that decides which views to keep."""
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 
 import numpy as np
 import pytest
 
-from calibration.boards import CharucoSpec
 from calibration.detect import Corners, detect
 from calibration.selection import ViewSelector
 from rig.cli import main
+from tests.calibration.cli_helpers import run_json
 
 pytestmark = pytest.mark.slow
 
@@ -73,12 +71,8 @@ def test_capture_from_a_simulated_rig_writes_views_for_run(tmp_path):
     board_file = tmp_path / "board.toml"
     board_file.write_text("".join(f"{k} = {json.dumps(v)}\n" for k, v in board.to_dict().items()))
     out = tmp_path / "views"
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        rc = main(["calibrate", "capture", "-c", str(config), "--board", str(board_file), "-o", str(out),
-                   "--views", "3", "--max-frames", "6", "--interval", "0.7", "--json"])
-    assert rc == 0
-    summary = json.loads(buf.getvalue())
+    summary = run_json("calibrate", "capture", "-c", config, "--board", board_file, "-o", out,
+                       "--views", "3", "--max-frames", "6", "--interval", "0.7")
     print(f"\ncapture: kept {summary['views_kept']} of {summary['views_looked_at']} views; coverage {summary['coverage']}")
     assert 1 <= summary["views_kept"] <= 3
     assert json.loads((out / "roles.json").read_text()) == {"left": "left", "right": "right"}

@@ -4,9 +4,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calibration.synthetic import warp_board
 from calibration.boards import CharucoSpec, ChessboardSpec
 from calibration.detect import canonical_chessboard_order, detect
+from calibration.synthetic import warp_board
 
 QUAD = [[400, 150], [900, 200], [880, 560], [420, 600]]
 

@@ -5,8 +5,8 @@ import numpy as np
 import torch
 
 from inference.config import DepthInitConfig
-from inference.depth_init import DepthInit, push_pull_fill, splat_depth
-from inference.geometry import pixel_rays
+from inference.model.depth_init import DepthInit, push_pull_fill, splat_depth
+from inference.model.geometry import pixel_rays
 
 K = torch.tensor([[[40.0, 0.0, 31.5], [0.0, 40.0, 23.5], [0.0, 0.0, 1.0]]])
 SIZE = (64, 48)
@@ -25,7 +25,7 @@ def plane_points(depth: float, density: int = 2) -> torch.Tensor:
 def test_a_plane_splats_to_its_depth_everywhere():
     pts = plane_points(3.0, density=1)
     raw, cov = splat_depth(pts, torch.ones(1, 1, pts.shape[2]), EYE, K, SIZE, radius=1, front_tolerance=0.02)
-    assert torch.allclose(raw, torch.full_like(raw, 3.0), rtol=1e-5)
+    assert torch.allclose(raw, torch.full_like(raw, 3.0), rtol=1e-6)  # measured 1.6e-7
     assert (cov > 0.5).all()
 
 
@@ -38,8 +38,8 @@ def test_the_nearer_surface_wins_where_they_overlap():
     raw, _ = splat_depth(pts, torch.ones(1, 1, pts.shape[2]), EYE, K, SIZE, radius=1, front_tolerance=0.02)
     left = raw[0, 0, :, :28]
     right = raw[0, 0, :, 36:]
-    assert torch.allclose(left, torch.full_like(left, 2.0), rtol=1e-4)
-    assert torch.allclose(right, torch.full_like(right, 4.0), rtol=1e-4)
+    assert torch.allclose(left, torch.full_like(left, 2.0), rtol=1e-6)  # measured 1.2e-7
+    assert torch.allclose(right, torch.full_like(right, 4.0), rtol=1e-6)  # measured 0
 
 
 def test_transparent_points_do_not_count():
@@ -59,7 +59,7 @@ def test_output_is_continuous_in_the_points():
     layer = DepthInit(DepthInitConfig(), SIZE)
     a = layer(pts[..., None], pts[..., :0, None], op[..., None], op[..., :0, None], EYE, K).depth
     b = layer((pts + 1e-6)[..., None], pts[..., :0, None], op[..., None], op[..., :0, None], EYE, K).depth
-    assert (a - b).abs().max() < 1e-3
+    assert (a - b).abs().max() < 5e-4  # measured 7.8e-5 for the 1e-6 move
 
 
 def test_push_pull_fills_holes_from_their_surroundings():
@@ -73,4 +73,5 @@ def test_push_pull_fills_holes_from_their_surroundings():
     ramp = torch.linspace(1.0, 3.0, 32).reshape(1, 1, 1, 32).expand(1, 1, 32, 32).clone()
     filled = push_pull_fill(ramp * cov, cov, levels=6)
     hole = filled[0, 0, 10:20, 10:20].numpy()
-    assert np.all(hole > ramp[0, 0, 0, 9].item() - 0.3) and np.all(hole < ramp[0, 0, 0, 20].item() + 0.3)
+    # Measured 0.040 above the left neighbour and 0.051 below the right one at the extremes.
+    assert np.all(hole > ramp[0, 0, 0, 9].item()) and np.all(hole < ramp[0, 0, 0, 20].item())

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
+from fp16_support import skip_without_float16_cpu_kernels
 
-from calibration.camera import CameraModel
 from inference.errors import InferenceError
-from inference.preprocess import pinhole
 from inference.runtime import NovelViewPipeline
-from inference.synthetic import example_inputs, rig_camera
+from inference.runtime.preprocess import pinhole
+from inference.runtime.synthetic import example_inputs, rig_camera
 from rig.cli import main
 
 REPO = Path(__file__).resolve().parents[2]
@@ -57,17 +57,19 @@ def test_fp16_variant_keeps_float32_interface_and_geometry(tiny_onnx):
     half = tiny_onnx.path.with_name(tiny_onnx.path.stem + ".fp16.onnx")
     m = onnx.load(str(half))
     assert all(i.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for i in list(m.graph.input) + list(m.graph.output))
-    fp16_weights = [i for i in m.graph.initializer if i.data_type == onnx.TensorProto.FLOAT16]
-    assert len(fp16_weights) > 50
+    # Every learned layer's weights are float16 (measured: all 72 Conv/MatMul/Gemm weights).
+    dtypes = {i.name: i.data_type for i in m.graph.initializer}
+    weights = [dtypes[n.input[1]] for n in m.graph.node if n.op_type in ("Conv", "MatMul", "Gemm") and n.input[1] in dtypes]
+    assert len(weights) > 50 and set(weights) == {onnx.TensorProto.FLOAT16}
+    skip_without_float16_cpu_kernels(m)
     feeds = example_inputs(NovelViewPipeline(tiny_onnx.path).sizes, False).arrays
     full = ort.InferenceSession(str(tiny_onnx.path), providers=["CPUExecutionProvider"]).run(None, feeds)
-    try:
-        halfs = ort.InferenceSession(str(half), providers=["CPUExecutionProvider"]).run(None, feeds)
-    except Exception as exc:  # an ONNX Runtime build without float16 CPU kernels
-        pytest.skip(f"this ONNX Runtime cannot run float16 on the CPU: {exc}")
-    diff = np.abs(halfs[0] - full[0])
-    print(f"\nfp16 vs fp32: image max {diff.max():.2e}, mean {diff.mean():.2e}")
-    assert np.percentile(diff, 99) < 0.02
+    halfs = ort.InferenceSession(str(half), providers=["CPUExecutionProvider"]).run(None, feeds)
+    image, depth = np.abs(halfs[0] - full[0]), np.abs(halfs[1] - full[1])
+    print(f"\nfp16 vs fp32: image max {image.max():.2e}, mean {image.mean():.2e}; depth max {depth.max():.2e} m")
+    # Measured 1.05e-5 (image) and 1.2e-5 m (depth): the untrained output heads carry little of
+    # the float16 rounding through.
+    assert image.max() < 1e-4 and depth.max() < 1e-4
 
 
 def test_runtime_renders_simulator_frames_from_camera_models(oracle_onnx, sim_frames):
@@ -87,7 +89,7 @@ def test_runtime_renders_simulator_frames_from_camera_models(oracle_onnx, sim_fr
     # The viewpoint is an input: another target, another image, same session.
     other = pipe.render(sim_frames.rgb["left"], sim_frames.rgb["right"], rig["left"], rig["right"], rig["sup3"],
                         sim_frames.depth["left"], sim_frames.depth["right"])
-    assert np.abs(other.image - view.image).mean() > 0.01
+    assert np.abs(other.image - view.image).mean() > 0.05  # measured 0.087
 
 
 def test_runtime_reports_bad_input_clearly(oracle_onnx, tiny_onnx, tmp_path):
@@ -125,7 +127,7 @@ NO_TORCH = textwrap.dedent(
     sys.meta_path.insert(0, BlockTorch())
     import numpy as np
     from inference.runtime import NovelViewPipeline
-    from inference.synthetic import rig_camera, smooth_image
+    from inference.runtime.synthetic import rig_camera, smooth_image
 
     pipe = NovelViewPipeline(sys.argv[1])
     rng = np.random.default_rng(0)
@@ -167,7 +169,8 @@ def test_bench_reports_per_stage_times_of_both(tiny_onnx, capsys):
         assert info["torch_ms"][key] > 0
         assert info["ort_ms"][key] > 0
     assert info["size"] == {"coarse": "128x64", "fine": "256x144", "output": "320x180"}
-    assert info["speedup"] == pytest.approx(info["torch_ms"]["total"] / info["ort_ms"]["total"], rel=1e-2)
+    # The speedup is rounded to 3 decimals (at most 5e-4 off; measured 2.9e-4 at 1.924x).
+    assert info["speedup"] == pytest.approx(info["torch_ms"]["total"] / info["ort_ms"]["total"], abs=1e-3)
     with capsys.disabled():
         print(f"\nbench at test size: torch {info['torch_ms']['total']:.0f} ms, ORT {info['ort_ms']['total']:.0f} ms, speedup {info['speedup']:.2f}x")
 

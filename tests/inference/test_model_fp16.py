@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import onnx
 import onnxruntime as ort
-import pytest
 import torch
+from fp16_support import skip_without_float16_cpu_kernels
 
 from inference.export import _quiet, to_fp16
 
@@ -33,12 +33,13 @@ def test_fp16_conversion_halves_learned_layers_only(tmp_path):
     assert all(v.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for v in list(half.graph.input) + list(half.graph.output))
     path = tmp_path / "half.onnx"
     onnx.save(half, path)
-    try:
-        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-        net, geo = sess.run(None, {"image": image.numpy(), "u": u.numpy()})
-    except Exception as exc:  # an ONNX Runtime build without float16 CPU kernels
-        pytest.skip(f"this ONNX Runtime cannot run float16 on the CPU: {exc}")
+    skip_without_float16_cpu_kernels(half)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    net, geo = sess.run(None, {"image": image.numpy(), "u": u.numpy()})
     ref_net, ref_geo = m(image, u)
-    assert np.abs(geo - ref_geo.detach().numpy()).max() < 1e-4  # float32 path
+    # Float32 path: measured 0 (one float32 ulp at 1000 is 6e-5; float16 would be 0.5 off).
+    assert np.abs(geo - ref_geo.detach().numpy()).max() < 1e-4
+    # Float16 weights and arithmetic: measured 9.3e-5 (outputs up to 0.14); the float32 export of
+    # the same module is 3e-8 from torch, so the lower bound shows float16 really ran.
     err = np.abs(net - ref_net.detach().numpy()).max()
-    assert 0 < err < 1e-2  # float16 arithmetic: close, not bit-equal
+    assert 1e-6 < err < 1e-3

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from calibration.camera import CameraModel, intrinsics_from_fov, look_at
-from inference.geometry import (
+from inference.model.geometry import (
     inverse_3x3,
     invert_pose,
     pixel_rays,
@@ -89,4 +89,4 @@ def test_warping_a_source_with_true_depth_reproduces_the_target():
     )
     err = np.abs(warped[0].permute(1, 2, 0).numpy() - tgt_img)[4:-4, 4:-4]
     assert visible[0, 0, 4:-4, 4:-4].all()
-    assert err.max() < 0.02
+    assert err.max() < 5e-3  # measured 1.5e-3 (bilinear sampling of a smooth texture)

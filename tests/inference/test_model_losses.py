@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from inference.losses import chamfer_6d, point_colour_set, rendering_loss, ssim
+from inference.train.losses import chamfer_6d, point_colour_set, rendering_loss, ssim
 
 
 def ssim_direct(x: np.ndarray, y: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:

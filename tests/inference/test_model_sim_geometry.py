@@ -13,7 +13,7 @@ from __future__ import annotations
 import pytest
 
 from inference.config import Sizes
-from inference.geometry_eval import View, evaluate_geometry, target_views
+from inference.evaluate.geometry import View, evaluate_geometry, target_views
 
 
 @pytest.mark.parametrize("target", ["sup1", "sup2", "sup3", "sup4"])

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from inference.config import SplatConfig
-from inference.geometry import pixel_rays, resize_intrinsics
-from inference.splat import PlaneSplatter, quaternion_to_matrix, render_reference
-from inference.stage2 import GaussianPlaneMaps
+from inference.model.geometry import pixel_rays, resize_intrinsics
+from inference.model.splat import PlaneSplatter, quaternion_to_matrix, render_reference
+from inference.model.stage2 import GaussianPlaneMaps
 
 PLANE = (12, 8)
 OUT = (15, 10)
@@ -111,6 +111,6 @@ def test_one_surface_blends_smoothly_instead_of_by_order():
     a = fast(flat, cfg).image
     nudged = GaussianPlaneMaps(flat.means * (1 + 1e-7 * torch.rand_like(depth)), flat.rotations, flat.scales, flat.opacities, flat.colours)
     b = fast(nudged, cfg).image
-    assert (a - b).abs().max() < 1e-5
+    assert (a - b).abs().max() < 2e-6  # measured 1.9e-7
     row = a[0, 0, 5, 2:-2].numpy()
     assert np.all(np.diff(row) > 0)  # monotonic like the ramp

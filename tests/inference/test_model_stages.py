@@ -3,13 +3,24 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-
-from inference.backbone import OracleBackbone, TinyBackbone
-from inference.config import BackboneConfig, Stage1Config, Stage2Config
-from inference.geometry import invert_pose, pixel_rays, relative_pose, transform_points, unproject_depth
-from inference.stage1 import AffineTransform
-from inference.stage2 import ColourInit, DepthRefine, GaussianPlane, RefinedDepth, warp_candidates
 from plane_scene import camera, view_of_plane
+
+from inference.config import BackboneConfig, Stage1Config, Stage2Config
+from inference.model.backbone import OracleBackbone, TinyBackbone
+from inference.model.geometry import (
+    invert_pose,
+    pixel_rays,
+    relative_pose,
+    transform_points,
+)
+from inference.model.stage1 import AffineTransform
+from inference.model.stage2 import (
+    ColourInit,
+    DepthRefine,
+    GaussianPlane,
+    RefinedDepth,
+    warp_candidates,
+)
 
 COARSE = (64, 32)
 
@@ -39,7 +50,7 @@ def test_oracle_point_maps_are_the_scene_in_the_left_frame():
     # Both views' points lie on the world plane z = 0 once taken back to the world frame.
     for pts in (pm.points_left, pm.points_right):
         world = transform_points(invert_pose(t(left.extrinsic)), pts)
-        assert world[:, 2].abs().max() < 1e-4
+        assert world[:, 2].abs().max() < 1e-5  # measured 7.2e-7
     assert pm.tokens_left.shape == (1, (32 // 16) * (64 // 16), 3 * 16 * 16)
 
 
@@ -47,9 +58,9 @@ def test_canonical_oracle_has_unit_mean_distance():
     metric, *_ = oracle_maps("metric")
     canon, *_ = oracle_maps("canonical")
     d = torch.cat([canon.points_left.norm(dim=1).flatten(), canon.points_right.norm(dim=1).flatten()]).mean()
-    assert abs(d.item() - 1.0) < 1e-5
+    assert abs(d.item() - 1.0) < 1e-6  # measured 1.2e-7
     ratio = metric.points_left / canon.points_left
-    assert torch.allclose(ratio, ratio.flatten()[0].expand_as(ratio), rtol=1e-4)
+    assert torch.allclose(ratio, ratio.flatten()[0].expand_as(ratio), rtol=1e-6)  # measured 6.6e-8
 
 
 def test_tiny_backbone_is_a_few_million_parameters_and_starts_smooth():
@@ -76,7 +87,7 @@ def test_untrained_affine_transform_scales_by_the_baseline_and_learns():
     layer = AffineTransform(Stage1Config(iterations=2), pm.tokens_left.shape[-1], COARSE)
     out = layer(pm, t(left.K), t(right.K), r2l)
     baseline = np.linalg.norm(left.center - right.center)
-    assert torch.allclose(out.scale, torch.full((1, 3), float(baseline)), rtol=1e-5)
+    assert torch.allclose(out.scale, torch.full((1, 3), float(baseline)), rtol=1e-6)  # measured 7.9e-8
     assert out.translation_left.abs().max() == 0
     # Gradients reach both the scale MLP and the ConvGRU's output layer.
     loss = (out.points_left - 2.0).abs().mean() + (out.points_right - 2.0).abs().mean()
@@ -94,7 +105,7 @@ def test_translation_reads_the_other_view():
     a = layer(pm, t(left.K), t(right.K), r2l).translation_left
     pm.tokens_right = pm.tokens_right.flip(1)
     b = layer(pm, t(left.K), t(right.K), r2l).translation_left
-    assert (a - b).abs().max() > 1e-6
+    assert (a - b).abs().max() > 1e-4  # measured 1.1e-3 (|T| up to 0.037)
 
 
 def two_views_of_a_plane(size=(96, 64)):
@@ -123,7 +134,7 @@ def test_cost_volume_warps_agree_at_the_true_depth():
         cost = ((fl - fr) ** 2).sum(1) * vl[:, 0] * vr[:, 0] + (1 - vl[:, 0] * vr[:, 0]) * 1e3
         best = cost.median(dim=-1).values.median(dim=-1).values.argmin().item()
         truth = (1.0 / (1 + shift) - 1)  # the candidate offset that lands on the surface
-        assert abs(offsets[best].item() - truth) <= 0.0126
+        assert abs(offsets[best].item() - truth) <= 0.0126  # half the 0.025 spacing: the nearest candidate (measured 0.0026, 0, 0.0052)
 
 
 def test_uniform_depth_probabilities_keep_the_initial_depth():
@@ -159,11 +170,11 @@ def test_colour_comes_from_the_source_that_sees_the_point():
     out = colour(L, Rimg, t(left.K), t(right.K), tl, tr, t(target.K), fixed)
     assert out.visible_right.max() == 0
     seen = (out.visible_left == 1).expand(1, 3, 48, 64)
-    assert seen.float().mean() > 0.5
+    assert seen.float().mean() > 0.85  # measured 0.90
     assert torch.allclose(out.colour[seen], out.colour_left[seen], atol=1e-6)
     plane = GaussianPlane(cfg, (64, 48))(out, d, t(target.K))
     # Untrained heads: P_c = C, unit quaternions, Gaussians about 0.6 px wide.
     assert torch.allclose(plane.colours, out.colour, atol=1e-6)
     assert torch.allclose(plane.rotations.norm(dim=1), torch.ones(1, 48, 64))
     px = plane.scales[:, 0] / (d[:, 0] / target.K[0, 0])
-    assert torch.allclose(px, torch.full_like(px, 0.6), rtol=1e-4)
+    assert torch.allclose(px, torch.full_like(px, 0.6), rtol=1e-6)  # measured 9.9e-8

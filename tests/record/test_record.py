@@ -10,11 +10,12 @@ import time
 import tomllib
 
 import numpy as np
-import pytest
 
-from rig.config import dump_config, parse_config
-from rig.sequence import INDEX, repair, validate
-from rig.simrig import sim_rig_config
+from rig.cameras.sim import sim_rig_config
+from rig.config import dump_config, load_config, parse_config
+from rig.storage.layout import INDEX
+from rig.storage.netpbm import netpbm_size
+from rig.storage.validate import repair, validate
 from tests.rig.cli_helpers import REPO, run_rig
 
 
@@ -41,13 +42,13 @@ def test_record_sets_in_sync_without_losing_frames(tmp_path):
     assert out["frames_lost"] == {"left": 0, "right": 0}
     assert out["frames"] == {"left": 45, "right": 45} and out["mb_per_s"] > 0
     v = json.loads(run_rig("record", "validate", seq, "--json").stdout)
-    assert v["readable"] and v["errors"] == [] and v["sets"] == 45 and v["gaps"] == 0
-    triggers = [r["trigger"] for r in rows(seq)]
-    assert triggers == sorted(triggers) and len(set(triggers)) == 45
+    assert v["readable"] and v["errors"] == [] and v["sets"] == 45 and v["gaps"] == 0 and not v["torn_tail"]
+    assert v["frames"] == out["frames"] and v["missing"] == {"left": 0, "right": 0}
+    assert [r["trigger"] for r in rows(seq)] == list(range(45))  # the board's train of 45 pulses, each one set
     assert (seq / "rig.toml").exists() and tomllib.loads((seq / "rig.toml").read_text())["rig"]["name"] == "sim-2cam"
 
 
-def test_kill_9_loses_at_most_a_second_and_repair_makes_it_clean(tmp_path):
+def test_kill_9_loses_nothing_flushed_and_repair_makes_it_clean(tmp_path):
     seq = tmp_path / "seq"
     proc = subprocess.Popen([sys.executable, "-m", "rig", "record", "-c", str(rig_file(tmp_path, 320, 180)), "-o", str(seq),
                              "--seconds", "60"], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -60,35 +61,30 @@ def test_kill_9_loses_at_most_a_second_and_repair_makes_it_clean(tmp_path):
     proc.wait()
     v = validate(seq, check_pixels=True)
     assert v.readable, v.errors
+    assert v.sets >= 40  # the 40 rows seen before the kill were flushed: a kill -9 loses none of them
     last_ts = max(r["host_ts_ns"] for r in rows(seq)[-1:] for r in r["frames"].values() if r)
-    assert killed_ns - last_ts < 1e9  # at most one second of the take is lost
+    # only the sets in flight at the kill are lost: measured 0.004-0.03 s (a set is 0.033 s), 0.5 s
+    # leaves room for a loaded host
+    assert killed_ns - last_ts < 0.5e9
     repair(seq)
     again = validate(seq, check_pixels=True)
     assert again.readable and not again.torn_tail and again.sets == v.sets
 
 
-@pytest.fixture
-def small_filesystem(tmp_path):
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(mnt)], capture_output=True).returncode != 0:
-        pytest.skip("cannot mount a small tmpfs here (needs root)")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)])
-
-
 def test_full_disk_stops_cleanly_and_keeps_a_valid_sequence(tmp_path, small_filesystem):
-    seq = small_filesystem / "seq"
+    seq = small_filesystem(6) / "seq"
     proc = run_rig("record", "-c", rig_file(tmp_path, 640, 360), "-o", seq, "--seconds", 20, "--json")
     assert proc.returncode == 1
     err = proc.stderr.strip().splitlines()
     assert len(err) == 1 and "disk full" in err[0] and "Traceback" not in proc.stderr
     out = json.loads(proc.stdout)
-    assert out["stopped_by"] == "storage" and out["sets"] > 0
+    # 6 MiB holds 4 whole sets of two 640x360 RGB images (measured: 4); 3 when one camera's writer
+    # was a set ahead of the other as the disk filled
+    whole_sets = (6 << 20) // (2 * netpbm_size(640, 360, 3, 1))
+    assert out["stopped_by"] == "storage" and whole_sets - 1 <= out["sets"] <= whole_sets
     v = validate(seq, check_pixels=True)
     assert v.readable and v.sets == out["sets"], v.errors
+    assert v.frames == {"left": out["sets"], "right": out["sets"]}  # the sets kept are whole
 
 
 def test_camera_vanishing_marks_its_frames_missing_while_others_go_on(tmp_path):
@@ -99,15 +95,21 @@ def test_camera_vanishing_marks_its_frames_missing_while_others_go_on(tmp_path):
     assert out["frames_lost"] == {"left": 0, "right": 0}
     index = rows(seq)
     right = [r["frames"]["right"] for r in index]
-    assert right[0] is not None and right[-1] is None  # there, then gone
+    gone = right.index(None)
+    assert gone > 0 and all(r is None for r in right[gone:])  # there, then gone for good
     assert all(r["frames"]["left"] is not None for r in index)  # the left camera went on
-    assert out["frames"]["left"] > out["frames"]["right"] > 0
+    # 3 s at 30 sets/s, plus the sets in flight at the stop (measured: 94); a loaded host adds at
+    # most the 2 s a set may wait for a late frame
+    assert 80 <= out["sets"] <= 150 and out["frames"]["left"] == out["sets"]
+    # the right camera vanishes 4 s after it starts, within the take once the clock warm-up is over
+    # (measured: after 30 sets; more when starting the cameras ate into the warm-up)
+    assert out["frames"]["right"] == gone <= 4 * 30 + 1
     v = validate(seq)
-    assert v.readable and v.missing["right"] > 0
+    assert v.readable and v.missing == {"left": 0, "right": out["sets"] - gone}
 
 
 def test_simulator_take_reads_back_with_exact_ground_truth(tmp_path):
-    from rig.dataset import Sequence
+    from rig.storage.dataset import Sequence
     from simulator.render import render
 
     seq = tmp_path / "seq"
@@ -126,7 +128,7 @@ def test_simulator_take_reads_back_with_exact_ground_truth(tmp_path):
     def psnr(a, b):
         return 10 * np.log10(255.0**2 / np.mean((a.astype(float) - b.astype(float)) ** 2))
 
-    assert psnr(s.images["right"], render(take._scene, cam, t).rgb) > psnr(s.images["right"], render(take._scene, cam, t + 0.4).rgb) + 3
+    assert psnr(s.images["right"], render(take._truth.scene, cam, t).rgb) > psnr(s.images["right"], render(take._truth.scene, cam, t + 0.4).rgb) + 3
 
 
 def test_sigterm_ends_a_take_cleanly_and_reports_it(tmp_path):
@@ -142,6 +144,27 @@ def test_sigterm_ends_a_take_cleanly_and_reports_it(tmp_path):
     assert proc.returncode == 0, stderr
     out = json.loads(stdout)
     assert out["stopped_by"] == "interrupt" and out["sets"] >= 20
-    assert all(n >= 0 for n in out["frames_lost"].values()) and set(out["frames_lost"]) == {"left", "right"}
+    assert out["frames_lost"] == {"left": 0, "right": 0}  # the sets in flight at the signal are written too
     v = validate(seq)
-    assert v.readable and v.sets == out["sets"]
+    assert v.readable and v.sets == out["sets"] and v.frames == out["frames"]
+
+
+def test_an_interrupt_writes_the_sets_already_grouped(tmp_path):
+    """Ctrl-C while sets wait to be written (the host fell behind): they are written, none is lost."""
+    from rig.capture.record import record
+
+    class CtrlCWhileBehind:  # stands where the status line is updated, once per set written
+        def __init__(self):
+            self.calls = 0
+
+        def update(self, text):
+            self.calls += 1
+            if self.calls == 10:
+                time.sleep(0.2)  # six more pulses fire and are grouped meanwhile
+                raise KeyboardInterrupt
+
+    result = record(load_config(rig_file(tmp_path)), tmp_path / "seq", seconds=60, status=CtrlCWhileBehind())
+    assert result.stopped_by == "interrupt" and result.errors == []
+    assert result.sets >= 15 and result.frames_lost == {"left": 0, "right": 0}
+    v = validate(tmp_path / "seq")
+    assert v.readable and v.sets == result.sets and v.frames == result.frames

@@ -9,9 +9,11 @@ import pytest
 from calibration.camera import CameraModel, RigCalibration
 from rig.cameras import open_camera
 from rig.config import CameraConfig
-from rig.dataset import Sequence
-from rig.recorder import SequenceWriter
-from rig.sequence import INDEX, read_netpbm, repair, validate
+from rig.storage.dataset import Sequence
+from rig.storage.recorder import SequenceWriter
+from rig.storage.layout import INDEX, SequenceError
+from rig.storage.netpbm import read_netpbm
+from rig.storage.validate import repair, validate
 from sync.frames import FrameSet
 from tests.rig.cli_helpers import assert_one_line_error, run_rig
 
@@ -135,3 +137,34 @@ def test_bayer_cameras_are_stored_as_their_mosaic_and_read_back_identical(tmp_pa
     sample = next(Sequence(seq_dir).samples(cameras=["left"]))
     assert np.array_equal(sample.images["left"], frame.image)
     assert validate(seq_dir).readable
+
+
+def test_a_damaged_image_header_is_reported_not_a_crash(tmp_path):
+    seq_dir = tmp_path / "seq"
+    write_sequence(seq_dir, n=4, calibration=calibration_file(tmp_path))
+    rows = [json.loads(line) for line in (seq_dir / INDEX).read_text().splitlines()]
+    image = seq_dir / rows[2]["frames"]["left"]["file"]
+    data = image.read_bytes()
+    image.write_bytes(data.replace(b"64 48", b"6x 48", 1))  # same size: only decoding the pixels finds it
+    assert validate(seq_dir).readable
+    v = validate(seq_dir, check_pixels=True)
+    assert not v.readable and v.readable_sets == 2 and v.errors == [f"{image}: damaged PPM/PGM header"]
+    with pytest.raises(SequenceError, match="damaged PPM/PGM header"):
+        list(Sequence(seq_dir).samples(cameras=["left"]))
+
+
+def test_repair_cuts_where_validate_first_finds_damage(tmp_path):
+    """A row naming a camera the sequence does not record is damage to both, so repair leaves a clean take."""
+    seq_dir = tmp_path / "seq"
+    write_sequence(seq_dir, n=6)
+    index = seq_dir / INDEX
+    lines = index.read_text().splitlines(keepends=True)
+    row = json.loads(lines[3])
+    row["frames"]["ghost"] = None
+    lines[3] = json.dumps(row) + "\n"
+    index.write_text("".join(lines))
+    v = validate(seq_dir)
+    assert v.errors == ["set 3: unknown camera 'ghost'"] and v.readable_sets == 3
+    assert repair(seq_dir)["kept_sets"] == 3
+    again = validate(seq_dir)
+    assert again.readable and again.sets == 3

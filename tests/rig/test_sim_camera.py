@@ -1,13 +1,18 @@
 """The sim:// camera honours the camera contract: trigger modes, drops, its own clock, disconnects."""
 from __future__ import annotations
 
+import io
+import os
+import sys
 import time
 
 import numpy as np
 import pytest
 
+from common.bayer import demosaic, mosaic
 from rig.cameras import open_camera
-from rig.config import CameraConfig
+from rig.cameras.sim import sim_rig_config
+from rig.config import CameraConfig, parse_config
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError
 
 
@@ -78,6 +83,34 @@ def test_bayer_sensor_delivers_rgb_frames():
         cam.start()
         f = cam.get_frame(1.0)
     assert f.image.shape == (48, 64, 3) and f.pixel_format == "BayerRG8"
+    # the demosaic kept every sensor sample: the mosaic a recording stores gives back this very image
+    assert np.array_equal(demosaic(mosaic(f.image, "BayerRG8"), "BayerRG8"), f.image)
+
+
+def test_a_rig_camera_shows_its_pre_render_on_a_terminal_and_not_when_cached(tmp_path, monkeypatch):
+    monkeypatch.setenv("RIG_CACHE_DIR", str(tmp_path))
+    data = sim_rig_config(2, width=64, height=48)
+    data["sim"].update(loop_frames=3, seed=4242)  # a rig no other test has rendered in this process
+    cfg = parse_config(data)
+    master, slave = os.openpty()
+    terminal = os.fdopen(slave, "w")
+    monkeypatch.setattr(sys, "stderr", terminal)
+    try:
+        with open_camera(cfg.camera("left")) as cam:
+            cam.prepare()
+            assert cam.sensor.loop_origin == "render"
+        terminal.flush()
+        shown = os.read(master, 65536).decode(errors="replace")
+        assert "left: pre-rendering" in shown and "3/3" in shown
+    finally:
+        terminal.close()
+        os.close(master)
+    quiet = io.StringIO()  # piped: nothing is drawn
+    monkeypatch.setattr(sys, "stderr", quiet)
+    with open_camera(cfg.camera("right")) as cam:
+        cam.prepare()
+        assert cam.sensor.loop_origin == "render"
+    assert quiet.getvalue() == ""
 
 
 def test_unplugged_camera_reports_disconnect():

@@ -9,7 +9,8 @@ import pytest
 from calibration.boards import CharucoSpec
 from calibration.camera import CameraModel
 from simulator.errors import SimulatorError
-from simulator.render import camera_rays, render
+from simulator.rays import camera_rays
+from simulator.render import render
 from simulator.rig import virtual_rig
 from simulator.scene import Scene, default_board
 

@@ -91,7 +91,7 @@ def test_a_flash_partway_through_an_exposure_lights_the_frame_in_proportion():
     spot = (full - dark).mean(axis=2) > 20
     assert spot.sum() >= 4  # the LED is a few pixels in this camera
     ratio = float((part - dark)[spot].sum() / (full - dark)[spot].sum())
-    assert ratio == pytest.approx(0.75, abs=0.02)
+    assert ratio == pytest.approx(0.75, abs=0.005)  # noise-free: measured 0.748 (8-bit rounding)
 
 
 def test_find_flash_reports_a_flash_in_the_dead_time_as_uncertain():
@@ -100,7 +100,8 @@ def test_find_flash_reports_a_flash_in_the_dead_time_as_uncertain():
     onset = 10 * period + 20e6  # after frame 10's exposure ended, before frame 11 began
     trace = np.array([100.0 + (80.0 if onset <= t and t + exposure <= onset + 200e6 else 0.0) for t in times])
     est = find_flash(times, trace, exposure)
-    assert est.uncertainty_ns > 8e6  # the gap is 23 ms: the estimate says it cannot tell where in it
+    # the gap is 23.3 ms: the estimate says it cannot tell where in it (half the gap: 11.65 ms)
+    assert est.uncertainty_ns > 11e6
     assert abs(est.onset_ns - onset) <= est.uncertainty_ns + 1e6
 
 

@@ -136,7 +136,7 @@ def test_unplug_mid_run_is_reported_and_the_driver_reconnects(transport):
 def test_ports_without_a_board_are_reported(tmp_path):
     with pytest.raises(TriggerBoardError, match="cannot open"):
         TriggerBoard(f"serial://{tmp_path}/nothing").connect()
-    with pytest.raises(TriggerBoardError, match="rig.session"):
+    with pytest.raises(TriggerBoardError, match="rig.capture.session"):
         TriggerBoard("sim://trigger").connect()
     master, slave = os.openpty()  # a port where nobody speaks the protocol
     tty.setraw(slave)

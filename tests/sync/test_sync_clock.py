@@ -49,7 +49,7 @@ def test_mapping_error_under_20_us_with_200_us_jitter(seed):
     p99 = float(np.percentile(errors, 99))
     print(f"seed {seed}: board-to-host error p50 {np.percentile(errors, 50):.1f} us, p99 {p99:.1f} us, max {max(errors):.1f} us")
     assert p99 < 20.0
-    assert abs(model.drift_ppm - 100) < 2.0
+    assert abs(model.drift_ppm - 100) < 0.01  # measured under 0.0004 ppm for these seeds
     assert model.rejected_slow > 0  # the stalled replies were thrown out
 
 
@@ -62,7 +62,7 @@ def test_least_squares_midpoints_would_be_biased():
     for s in samples:
         model.add(*s)
     b = samples[-1][1]
-    assert abs(model.board_to_host_ns(b) - host_of(b)) / 1000 < 10
+    assert abs(model.board_to_host_ns(b) - host_of(b)) / 1000 < 3  # measured 1.4 us, against the midpoints' 70
 
 
 def test_round_trips_over_the_limit_are_rejected_and_reset_forgets():
@@ -87,4 +87,4 @@ def test_short_span_uses_the_nominal_rate():
     assert model.drift_ppm == 0.0
     for i in range(10, 100):
         model.add(i * 10_000_000, int(i * 10_000 * 1.005), i * 10_000_000 + 100_000)
-    assert model.drift_ppm == pytest.approx(5000, abs=20)
+    assert model.drift_ppm == pytest.approx(5000, abs=0.01)  # noise-free samples: measured 5000.00003

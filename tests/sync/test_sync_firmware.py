@@ -6,7 +6,6 @@ import os
 import subprocess
 import tty
 
-
 from sync.protocol import BOARD, HOST, format_line, parse_line, pulse_offset_us
 
 

@@ -120,7 +120,8 @@ def test_every_frame_finds_its_pulse_through_drops_misses_and_bad_reports():
         assert c["missed_triggers"] == len(miss[name])
     stats = grouper.stats()
     assert stats["complete_sets"] == n - len(set().union(*lose.values(), *miss.values()))
-    assert stats["skew_us"]["p50"] < 150 and stats["skew_us"]["max"] < 1000
+    # the skew is the two cameras' 50 us trigger jitter (measured p50 31 us, max 117 us), not the fit
+    assert stats["skew_us"]["p50"] < 60 and stats["skew_us"]["max"] < 250
 
 
 def test_a_second_frame_for_a_pulse_is_a_duplicate_never_a_neighbour():
@@ -164,7 +165,8 @@ def test_free_running_cameras_are_grouped_by_host_time_within_half_a_period():
             if f is not None:  # its exposure began within half a period of the pulse
                 assert abs(f.host_ts_ns - 10_000_000 - s.host_ts_ns) <= period / 2
     used = [s["free24"].frame_id for s in sets if s["free24"] is not None]
-    assert len(used) == len(set(used)) >= 40  # no frame in two sets
+    # no frame in two sets, and every 24 Hz frame is within half a period of some pulse: all are used
+    assert len(used) == len(set(used)) == int(n * 24 / 30)
     assert grouper.stats()["skew_us"]["p50"] > 3000  # the free camera's 4 ms offset shows
 
 

@@ -6,7 +6,17 @@ import sys
 
 import pytest
 
-from sync.protocol import BOARD, HOST, LineReader, ProtocolError, crc16, encode, format_line, parse_line, pulse_offset_us
+from sync.protocol import (
+    BOARD,
+    HOST,
+    LineReader,
+    ProtocolError,
+    crc16,
+    encode,
+    format_line,
+    parse_line,
+    pulse_offset_us,
+)
 
 
 def test_crc_matches_the_standard_check_value(vectors):

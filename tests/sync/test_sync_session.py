@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
+from rig.capture.session import RigSession
+from rig.capture.sync_check import sync_check
 from rig.config import parse_config
-from rig.session import RigSession
-from rig.sync_check import sync_check
 
 
 def sim_rig(trigger_sim=None, cameras=None, rate_hz=30.0, trigger=True) -> dict:
@@ -49,7 +49,8 @@ def test_sixty_seconds_at_30_hz_with_drops_jitter_and_drift():
     print("truth:", json.dumps(report["truth"]))
     assert report["pulses"] == 1800 and report["sets"] == 1800
     assert_truth(report)
-    assert 10 < sum(report["truth"]["drops_injected"].values()) < 150  # 2% of 3600 frames, give or take
+    # 2% of 3600 frames: 72 expected, binomial sd 8.4; the seeded cameras drop 71 (31 + 40)
+    assert 40 < sum(report["truth"]["drops_injected"].values()) < 105
     assert report["skew_us"]["p99"] < 500  # 50 us jitter per camera, not a frame period
     assert abs(report["drift_ppm"] - 100.0) < 5.0
     assert report["clock_residual_us"] < 200.0  # measured figure is printed; the model's own bound is in test_sync_clock

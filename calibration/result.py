@@ -1,0 +1,67 @@
+"""What a rig calibration produces besides the calibration file: the observations it used, the
+single-camera fits, the rejections with their reasons and the joint adjustment's solution.
+
+The solver (`calibration.solve`) fills these and the report (`calibration.report`) reads them; they
+live apart from both so that the dependency runs one way: solve -> report -> result.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from calibration import bundle
+from calibration.camera import RigCalibration
+
+
+@dataclass
+class Rejection:
+    camera: str
+    view: str
+    stage: str  # "intrinsics" | "joint"
+    rms_px: float
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"camera": self.camera, "view": self.view, "stage": self.stage, "rms_px": round(self.rms_px, 4), "reason": self.reason}
+
+
+@dataclass
+class CameraIntrinsics:
+    """One camera's single-camera fit (`cv2.calibrateCamera`) over the views it kept."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    rms: float
+    view_rms: dict[str, float]
+    poses: dict[str, tuple[np.ndarray, np.ndarray]]  # view -> board-to-camera (R, t)
+    fix_k3: bool
+
+
+@dataclass
+class Observations:
+    """The corners used in the final adjustment and their residuals, for the report."""
+
+    cameras: list[str]
+    views: list[str]
+    cam_idx: np.ndarray
+    view_idx: np.ndarray
+    ids: np.ndarray
+    uv: np.ndarray
+    residuals: np.ndarray
+
+
+@dataclass
+class CalibrationResult:
+    rig: RigCalibration
+    left: str
+    right: str | None
+    observations: Observations
+    intrinsics: dict[str, CameraIntrinsics]
+    rejected: list[Rejection]
+    stereo_init: dict[str, Any] | None
+    solution: bundle.Solution
+    image_size: dict[str, tuple[int, int]]
+    images_seen: dict[str, int] = field(default_factory=dict)
+    corners_rejected: dict[str, int] = field(default_factory=dict)  # single corners dropped, per camera

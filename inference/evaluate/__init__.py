@@ -1,0 +1,1 @@
+"""Measuring the pipeline: geometry checks against the simulator's ground truth."""

@@ -1,0 +1,1 @@
+"""Training of Splat-SAP: losses (and, as it grows, data, trainer)."""

@@ -1,0 +1,130 @@
+"""`rig record`: run the rig in sync and write every FrameSet to a sequence folder."""
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from rig.config import RigConfig
+from rig.errors import ConfigError
+from rig.progress import StatusLine
+from rig.cameras.sim import take_truth
+from rig.storage.recorder import SequenceWriter
+
+RECORD_MAX_WAIT_S = 2.0  # how long a set waits for a late frame before it is written without it
+
+
+@dataclass
+class RecordResult:
+    out: Path
+    sets: int = 0
+    complete_sets: int = 0
+    frames: dict[str, int] = field(default_factory=dict)
+    delivered: dict[str, int] = field(default_factory=dict)
+    drops: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+    bytes: int = 0
+    cpu_s: float = 0.0
+    errors: list[str] = field(default_factory=list)
+    stopped_by: str = "done"
+
+    @property
+    def frames_lost(self) -> dict[str, int]:
+        """Frames the cameras delivered to the host that are not in the sequence."""
+        return {n: self.delivered.get(n, 0) - self.frames.get(n, 0) for n in self.frames}
+
+    def to_dict(self) -> dict:
+        return {
+            "out": str(self.out),
+            "sets": self.sets,
+            "complete_sets": self.complete_sets,
+            "frames": self.frames,
+            "frames_lost": self.frames_lost,
+            "drops": self.drops,
+            "seconds": round(self.seconds, 3),
+            "sets_per_s": round(self.sets / self.seconds, 3) if self.seconds else 0.0,
+            "mb_per_s": round(self.bytes / 1e6 / self.seconds, 3) if self.seconds else 0.0,
+            "cpu_percent": round(100.0 * self.cpu_s / self.seconds, 1) if self.seconds else 0.0,
+            "stopped_by": self.stopped_by,
+            "errors": self.errors,
+        }
+
+
+def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Optional[int] = None,
+           status: Optional[StatusLine] = None) -> RecordResult:
+    from rig.capture.session import RigSession
+
+    if seconds is None and sets is None:
+        raise ConfigError("record: give --seconds S or --sets N")
+    if (seconds is not None and seconds <= 0) or (sets is not None and sets <= 0):
+        raise ConfigError("record: --seconds and --sets must be positive")
+    calibration = None
+    if cfg.calibration:
+        calibration = cfg.resolve(cfg.calibration)
+        if not calibration.is_file():
+            raise ConfigError(f"rig.calibration: {calibration} does not exist (calibrate with `rig calibrate run`, or remove the key)")
+    rate = cfg.trigger.rate_hz if cfg.trigger else max(c.fps for c in cfg.cameras)
+    writer = SequenceWriter(out, cfg.cameras, rig_name=cfg.name, rate_hz=rate, config_file=cfg.path,
+                            calibration_file=calibration, extra=take_truth(cfg))
+    result = RecordResult(Path(out))
+    cpu0 = time.process_time()
+    t0 = time.monotonic()
+    t_first: Optional[float] = None
+    session = None
+    try:
+        # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
+        session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S)
+        with session:
+            # A board rig records a train of exactly N pulses; otherwise the session is stopped when
+            # enough is recorded, and every set still in flight is written before the end.
+            session.start(pulses=sets if (sets is not None and session.board is not None) else 0)
+            for fs in session.framesets():
+                if not writer.write(fs):
+                    result.stopped_by = "storage"
+                    session.stop()
+                    break
+                result.sets += 1
+                if t_first is None:
+                    t_first = time.monotonic()  # the take starts with its first set, after the clock warm-up
+                    cpu0 = time.process_time()
+                elapsed = time.monotonic() - t_first
+                if status is not None:
+                    status.update(_status_text(result, writer, session, elapsed, out))
+                done = (sets is not None and result.sets >= sets) or (seconds is not None and elapsed >= seconds)
+                if done or session.train_done.is_set():
+                    session.stop()  # flushes the last sets; the loop writes them and ends
+            session_stats = session.camera_stats()
+            result.errors.extend(session.errors())
+    except KeyboardInterrupt:
+        result.stopped_by = "interrupt"
+        session_stats = {}
+        if session is not None:
+            # Leaving the `with` block stopped the session, which grouped the frames still in flight
+            # into its last sets: write them too, so an interrupted take loses no delivered frame.
+            while writer.error is None and (fs := session.next_set(timeout=0)) is not None:
+                writer.write(fs)
+            session_stats = session.camera_stats()
+    finally:
+        writer.close()
+    result.seconds = time.monotonic() - (t_first if t_first is not None else t0)
+    result.cpu_s = time.process_time() - cpu0
+    result.sets = writer.sets_written
+    result.complete_sets = writer.complete_sets
+    result.frames = dict(writer.frames_written)
+    result.bytes = writer.bytes_written
+    result.delivered = {n: s.get("delivered", 0) for n, s in session_stats.items()}
+    result.drops = {n: s.get("dropped", 0) for n, s in session_stats.items()}
+    if writer.error is not None:
+        result.errors.append(str(writer.error))
+        result.stopped_by = "storage"
+    return result
+
+
+def _status_text(result: RecordResult, writer: SequenceWriter, session, elapsed: float, out: Path) -> str:
+    drops = " ".join(f"{n}:{s.get('dropped', 0)}" for n, s in session.camera_stats().items())
+    free = shutil.disk_usage(out).free / 1e9
+    rate = result.sets / elapsed if elapsed > 0 else 0.0
+    mbps = writer.bytes_written / 1e6 / elapsed if elapsed > 0 else 0.0
+    return f"{elapsed:6.1f} s  {result.sets} sets  {rate:5.1f} sets/s  drops {drops}  {mbps:6.1f} MB/s  {free:6.1f} GB free"

@@ -1,0 +1,128 @@
+"""The recorded sequence folder: its file names and `sequence.json`, what was recorded.
+
+Layout (documented for users in docs/sequence-format.md):
+
+    SEQ/sequence.json        what was recorded: cameras, sizes, pixel formats, rate, start time
+    SEQ/rig.toml             copy of the rig configuration
+    SEQ/calibration.json     copy of the rig calibration (when the rig has one)
+    SEQ/index.jsonl          one row per FrameSet, appended and flushed as sets land (rig/storage/index.py)
+    SEQ/frames/CAM/NNNNNNNN.ppm|pgm   one binary netpbm image per frame (rig/storage/netpbm.py)
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from common.bayer import demosaic, mosaic
+from rig.errors import RigError
+from rig.storage.netpbm import netpbm_size, netpbm_suffix
+
+FORMAT_VERSION = 1
+INDEX = "index.jsonl"
+META = "sequence.json"
+FRAMES = "frames"
+CONFIG_COPY = "rig.toml"
+CALIBRATION_COPY = "calibration.json"
+
+
+class SequenceError(RigError):
+    """A sequence folder is missing, damaged or does not have what was asked of it."""
+
+    exit_code = 2
+
+
+def stored_layout(pixel_format: str) -> tuple[int, int]:
+    """(channels, bytes per sample) of the stored image for a sensor pixel format.
+
+    Bayer sensors are stored as their mosaic (one sample per pixel, a third of RGB's bytes): the
+    backend's demosaic keeps every sample, so re-mosaicking the Frame recovers the sensor data
+    exactly and the reader's demosaic gives back the very same RGB image.
+    """
+    if pixel_format in ("Mono8", "BayerRG8", "BayerGR8", "BayerGB8", "BayerBG8"):
+        return 1, 1
+    if pixel_format == "Mono16":
+        return 1, 2
+    return 3, 1  # RGB8
+
+
+@dataclass
+class CameraEntry:
+    name: str
+    role: str
+    width: int
+    height: int
+    pixel_format: str  # what the sensor delivered
+    channels: int  # as stored: 3 (RGB) or 1
+    bytes_per_sample: int
+
+    @property
+    def frame_bytes(self) -> int:
+        """Size of each of this camera's image files."""
+        return netpbm_size(self.width, self.height, self.channels, self.bytes_per_sample)
+
+    @property
+    def suffix(self) -> str:
+        return netpbm_suffix(self.channels)
+
+    @property
+    def bayer(self) -> bool:
+        return self.pixel_format.startswith("Bayer")
+
+    def stored(self, image: np.ndarray) -> np.ndarray:
+        """What is written for a Frame image of this camera."""
+        if self.bayer:
+            return mosaic(image, self.pixel_format)
+        return image
+
+    def decoded(self, stored: np.ndarray) -> np.ndarray:
+        """The Frame image back from what was stored."""
+        if self.bayer:
+            return demosaic(stored, self.pixel_format)
+        return stored
+
+
+@dataclass
+class SequenceMeta:
+    """The content of `sequence.json`."""
+
+    cameras: list[CameraEntry]
+    rig: str = ""
+    rate_hz: Optional[float] = None
+    created: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)  # e.g. "simulator": the ground truth of a simulator take
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {"version": FORMAT_VERSION, "rig": self.rig, "rate_hz": self.rate_hz, "created": self.created,
+             "cameras": [c.__dict__ for c in self.cameras]}
+        d.update(self.extra)
+        return d
+
+    @classmethod
+    def load(cls, root: Path) -> "SequenceMeta":
+        path = root / META
+        try:
+            d = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise SequenceError(f"{root}: not a sequence ({META} missing)") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise SequenceError(f"{path}: corrupt ({exc})") from None
+        if not isinstance(d, dict):
+            raise SequenceError(f"{path}: corrupt (not a JSON object)")
+        if d.get("version") != FORMAT_VERSION:
+            raise SequenceError(f"{path}: unsupported sequence version {d.get('version')!r}")
+        try:
+            cams = [CameraEntry(**c) for c in d["cameras"]]
+        except (KeyError, TypeError) as exc:
+            raise SequenceError(f"{path}: malformed camera list ({exc})") from None
+        extra = {k: v for k, v in d.items() if k not in ("version", "rig", "rate_hz", "created", "cameras")}
+        return cls(cams, d.get("rig", ""), d.get("rate_hz"), d.get("created", ""), extra)
+
+    def camera(self, name: str) -> CameraEntry:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise SequenceError(f"no camera '{name}' in this sequence (have: {', '.join(c.name for c in self.cameras)})")

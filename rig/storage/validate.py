@@ -1,0 +1,167 @@
+"""`rig record validate` and `repair`: is every indexed frame whole, and cut the index back to where it is."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from rig.storage.index import scan_index
+from rig.storage.layout import CALIBRATION_COPY, INDEX, CameraEntry, SequenceMeta
+from rig.storage.netpbm import NetpbmError, read_netpbm
+
+
+@dataclass
+class Validation:
+    root: Path
+    sets: int = 0
+    complete_sets: int = 0
+    frames: dict[str, int] = field(default_factory=dict)
+    missing: dict[str, int] = field(default_factory=dict)
+    gaps: int = 0  # trigger indices skipped between consecutive sets
+    skew_us: dict[str, float] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    torn_tail: bool = False
+    readable_sets: int = 0
+    calibrated: bool = False
+    duration_s: float = 0.0
+
+    @property
+    def readable(self) -> bool:
+        return not self.errors
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "path": str(self.root),
+            "readable": self.readable,
+            "sets": self.sets,
+            "complete_sets": self.complete_sets,
+            "incomplete_sets": self.sets - self.complete_sets,
+            "readable_sets": self.readable_sets,
+            "frames": self.frames,
+            "missing": self.missing,
+            "gaps": self.gaps,
+            "skew_us": self.skew_us,
+            "duration_s": round(self.duration_s, 3),
+            "torn_tail": self.torn_tail,
+            "calibrated": self.calibrated,
+            "errors": self.errors,
+            "warnings": self.warnings,
+        }
+
+
+def frame_problem(root: Path, entries: dict[str, CameraEntry], row: dict, cam: str, rec: Optional[dict]) -> Optional[str]:
+    """What is wrong with one frame record of an index row, or None. A null record (a marked gap) is fine."""
+    if cam not in entries:
+        return f"set {row['set']}: unknown camera '{cam}'"
+    if rec is None:
+        return None
+    try:
+        size = (root / rec["file"]).stat().st_size
+    except FileNotFoundError:
+        return f"set {row['set']}: {rec['file']} is missing"
+    except OSError as exc:
+        return f"set {row['set']}: {rec['file']} cannot be read ({exc.strerror})"
+    if size != entries[cam].frame_bytes:
+        return f"set {row['set']}: {rec['file']} is torn ({size} of {entries[cam].frame_bytes} bytes)"
+    return None
+
+
+def validate(root: str | Path, check_pixels: bool = False) -> Validation:
+    """Check every indexed frame is present and whole; count sets, frames, gaps, skew."""
+    root = Path(root)
+    v = Validation(root)
+    meta = SequenceMeta.load(root)
+    scan = scan_index(root)
+    v.torn_tail = scan.torn_tail
+    if scan.torn_tail:
+        v.warnings.append(f"{INDEX}: torn last row (recording was interrupted); `rig record repair` removes it")
+    for ln in scan.corrupt_lines:
+        v.errors.append(f"{INDEX}: line {ln} is corrupt")
+    v.frames = {c.name: 0 for c in meta.cameras}
+    v.missing = {c.name: 0 for c in meta.cameras}
+    entries = {c.name: c for c in meta.cameras}
+    skews = []
+    last_trigger = None
+    first_ts = last_ts = None
+    first_bad_set = None
+    for row in scan.rows:
+        v.sets += 1
+        complete = True
+        ts = []
+        row_ok = True
+        for cam, rec in row["frames"].items():
+            problem = frame_problem(root, entries, row, cam, rec)
+            if problem is None and rec is not None and check_pixels:
+                try:
+                    read_netpbm(root / rec["file"])
+                except NetpbmError as exc:
+                    problem = str(exc)
+            if problem is not None:
+                v.errors.append(problem)
+                row_ok = False
+                continue
+            if rec is None:
+                complete = False
+                v.missing[cam] += 1
+                continue
+            v.frames[cam] += 1
+            ts.append(rec["host_ts_ns"])
+        if not row_ok and first_bad_set is None:
+            first_bad_set = v.sets - 1
+        if complete:
+            v.complete_sets += 1
+        if len(ts) > 1:
+            skews.append((max(ts) - min(ts)) / 1e3)
+        if ts:
+            first_ts = min(ts) if first_ts is None else first_ts
+            last_ts = max(ts)
+        trig = row.get("trigger")
+        if trig is not None and last_trigger is not None and trig > last_trigger + 1:
+            v.gaps += trig - last_trigger - 1
+        if trig is not None:
+            last_trigger = trig
+    v.readable_sets = v.sets if first_bad_set is None else first_bad_set
+    if skews:
+        s = np.array(skews)
+        v.skew_us = {"p50": float(np.percentile(s, 50)), "p99": float(np.percentile(s, 99)), "max": float(s.max())}
+    if first_ts is not None and last_ts is not None:
+        v.duration_s = (last_ts - first_ts) / 1e9
+    cal = root / CALIBRATION_COPY
+    if cal.exists():
+        from calibration.camera import CalibrationError, RigCalibration
+
+        try:
+            RigCalibration.load(cal)
+            v.calibrated = True
+        except CalibrationError as exc:
+            v.errors.append(str(exc))
+    if v.sets == 0:
+        v.warnings.append("no frame sets recorded")
+    return v
+
+
+def repair(root: str | Path) -> dict[str, Any]:
+    """Truncate the index after the last set whose row and images are whole. Images are kept."""
+    root = Path(root)
+    meta = SequenceMeta.load(root)
+    entries = {c.name: c for c in meta.cameras}
+    scan = scan_index(root)
+    keep = 0
+    kept_rows = 0
+    for row, end in zip(scan.rows, scan.row_ends):
+        if end > scan.good_bytes or any(frame_problem(root, entries, row, cam, rec) for cam, rec in row["frames"].items()):
+            break
+        keep = end
+        kept_rows += 1
+    index = root / INDEX
+    removed = index.stat().st_size - keep
+    if removed:
+        with open(index, "r+b") as f:
+            f.truncate(keep)
+            f.flush()
+            os.fsync(f.fileno())
+    return {"path": str(root), "kept_sets": kept_rows, "removed_bytes": removed}

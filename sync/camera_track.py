@@ -1,0 +1,93 @@
+"""One camera as the frame grouper follows it: its counters, the frames it is waiting to place, and
+for a hardware-triggered camera the line that maps its device clock to the board's:
+device_ts_ns ~ dev_ref + offset_ns + slope * (board_us - board_ref), fitted to matched pairs."""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+HARDWARE = "hardware"
+TIMED = "timed"  # free-run or software-triggered: grouped by host time
+
+
+@dataclass
+class CameraCounters:
+    frames: int = 0  # received
+    grouped: int = 0  # placed in a set
+    drops: int = 0  # sets emitted without this camera
+    lost_frames: int = 0  # gaps in frame ids: exposures the camera made that never arrived
+    missed_triggers: int = 0  # pulses skipped without a gap in frame ids: the camera never exposed
+    duplicates: int = 0  # a second frame for a pulse already filled
+    unassigned: int = 0  # frames that fit no pulse (before the first, after the last, ambiguous)
+    reanchors: int = 0  # the device-time model was rebuilt from host time
+    ambiguous_anchors: int = 0  # frame ids and arrival times disagreed on the first pulse; arrival times won
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class CameraTrack:
+    name: str
+    mode: str  # HARDWARE or TIMED
+    counters: CameraCounters = field(default_factory=CameraCounters)
+    pending: deque = field(default_factory=deque)  # frames waiting for a timeline
+    # hardware: the device-time model
+    anchored: bool = False
+    board_ref: int = 0
+    dev_ref: int = 0
+    offset_ns: float = 0.0
+    slope: float = 1000.0  # device ns per board us
+    pairs: deque = field(default_factory=lambda: deque(maxlen=64))  # (board_us - board_ref, device_ts - dev_ref)
+    last_pulse: Optional[int] = None
+    last_frame_id: Optional[int] = None  # of the last frame assigned
+    last_seen_id: Optional[int] = None  # of the last frame received
+    id_base: Optional[int] = 0  # frame id before the first exposure of this train (None: unknown)
+    suspicious: int = 0
+    # timed: frames not yet claimed by a set, by host exposure-start time
+    timed: deque = field(default_factory=deque)
+    past_ns: int = -(2**62)  # host exposure-start time of the newest frame
+    alive: bool = True
+
+    def anchor(self, board_ref: int, dev_ref: int) -> None:
+        """Start the device-time model afresh: this device time answered the pulse at `board_ref`."""
+        self.anchored = True
+        self.board_ref = board_ref
+        self.dev_ref = dev_ref
+        self.offset_ns = 0.0
+        self.slope = 1000.0
+        self.pairs.clear()
+        self.suspicious = 0
+
+    def predicted_board_us(self, device_ts_ns: int) -> float:
+        """The board time the model puts a device timestamp at."""
+        return self.board_ref + (device_ts_ns - self.dev_ref - self.offset_ns) / self.slope
+
+    def add_pair(self, board_us: float, device_ts_ns: int) -> None:
+        """A frame matched to its pulse: refit the line."""
+        self.pairs.append((board_us - self.board_ref, float(device_ts_ns - self.dev_ref)))
+        if len(self.pairs) < 2:
+            x, y = self.pairs[0]
+            self.offset_ns, self.slope = y - 1000.0 * x, 1000.0
+            return
+        xy = np.array(self.pairs, dtype=np.float64)
+        x, y = xy[:, 0], xy[:, 1]
+        if np.ptp(x) < 0.2e6:  # under 0.2 s: too short to tell the slope from jitter
+            self.offset_ns, self.slope = float(np.mean(y - 1000.0 * x)), 1000.0
+            return
+        xm, ym = x.mean(), y.mean()
+        slope = float(np.sum((x - xm) * (y - ym)) / np.sum((x - xm) ** 2))
+        self.slope, self.offset_ns = slope, float(ym - slope * xm)
+
+    def new_train(self) -> None:
+        """A new pulse train: the model and the waiting frames are forgotten, ids count on from here."""
+        self.id_base = self.last_seen_id
+        self.anchored = False
+        self.pairs.clear()
+        self.last_pulse = None
+        self.pending.clear()
+        self.timed.clear()
+        self.past_ns = -(2**62)
