@@ -18,6 +18,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from common.errors import ReportedError
+from common.files import atomic_write_json
 
 SCHEMA_VERSION = 1
 
@@ -264,15 +265,7 @@ class RigCalibration:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write atomically (temp file + rename), so a crash never leaves a torn calibration."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "w") as f:
-            json.dump(self.to_dict(), f, indent=2)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        atomic_write_json(path, self.to_dict(), make_parents=True)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "RigCalibration":

@@ -2,7 +2,6 @@
 instant, and the exact calibration in the project's calibration file schema."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -11,6 +10,7 @@ import numpy as np
 
 from simulator.errors import SimulatorError
 from simulator.render import render
+from simulator.scene import check_time
 from simulator.sensor import SimRig
 
 CALIBRATION_FILE = "cameras.json"
@@ -20,12 +20,7 @@ def write_snapshot(config, t: float, out_dir, progress: Optional[Callable[[str],
     """Render every sim:// camera of `config` (a RigConfig) at time `t` into `out_dir`:
     NAME.png (RGB), NAME.depth.npy (float32 metres, 0 where nothing is hit), NAME.mask.png
     (255 on people) and cameras.json. Returns a summary (what `rig sim snapshot --json` prints)."""
-    try:
-        t = float(t)
-    except (TypeError, ValueError):
-        raise SimulatorError(f"time must be a number of seconds, got {t!r}") from None
-    if not math.isfinite(t) or t < 0:
-        raise SimulatorError(f"time must be a finite number of seconds >= 0, got {t}")
+    t = check_time(t)
     rig = SimRig(config)
     out = Path(out_dir)
     try:
