@@ -1,7 +1,8 @@
 """The `rig` command line. Each subcommand group lives in `rig/commands/<group>.py` with `register()`.
 
 Rules: every subcommand has --help; commands that report take --json and then print one JSON object
-on stdout; bad input exits 2 with one line on stderr and no traceback; failures during work exit 1.
+on stdout; bad input exits 2 with one line on stderr and no traceback; failures during work exit 1
+(an OSError no command turned into a message included: one line, exit 1).
 """
 from __future__ import annotations
 
@@ -21,6 +22,12 @@ def main(argv: list[str] | None = None) -> int:
         print("rig: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
+        return 1
+    except OSError as exc:
+        # The safety net for a file the work could not read or write after all (commands check their
+        # outputs before the work, exit 2): one line, exit 1, never a traceback.
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"rig: error: {where}{exc.strerror or exc} (the work stopped here)", file=sys.stderr)
         return 1
 
 

@@ -81,39 +81,60 @@ class RigConfig:
         return path
 
 
-# ---- validation helpers ----------------------------------------------------------------------------
+# ---- validation: every problem is collected, one line each ---------------------------------------
+
+class _Problems:
+    """The mistakes found so far. Checks add to it and go on, so that `rig config check` lists every
+    problem of a file at once instead of one per run."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def add(self, line: str) -> None:
+        self.lines.append(line)
+
+    def raise_if_any(self, prefix: str = "") -> None:
+        if self.lines:
+            raise ConfigError.of([prefix + line for line in self.lines])
+
+
+_BAD = object()  # a value that failed its check (the problem is already recorded)
+
 
 def _type_name(t) -> str:
     return {int: "an integer", float: "a number", str: "a string", bool: "true or false", dict: "a table"}[t]
 
 
-def _check_type(where: str, key: str, value: Any, typ) -> Any:
+def _check_type(where: str, key: str, value: Any, typ, problems: _Problems) -> Any:
     if typ is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        return float(value) if ok else _bad_type(where, key, value, typ)
-    if typ is int:
+        value = float(value) if ok else value
+    elif typ is int:
         ok = isinstance(value, int) and not isinstance(value, bool)
     else:
         ok = isinstance(value, typ)
-    return value if ok else _bad_type(where, key, value, typ)
+    if ok:
+        return value
+    problems.add(f"{where}.{key}: must be {_type_name(typ)}, got {type(value).__name__} {value!r}")
+    return _BAD
 
 
-def _bad_type(where: str, key: str, value: Any, typ):
-    raise ConfigError(f"{where}.{key}: must be {_type_name(typ)}, got {type(value).__name__} {value!r}")
-
-
-def _check_keys(where: str, table: dict, allowed: dict) -> None:
+def _fields(where: str, table: dict, spec: dict, problems: _Problems, required: tuple = ()) -> dict:
+    """The table's well-typed known keys; unknown keys, missing required keys and wrong types are
+    recorded and left out."""
     for key in table:
-        if key not in allowed:
-            raise ConfigError(f"{where}: unknown key '{key}' (allowed: {', '.join(allowed)})")
-
-
-def _fields(where: str, table: dict, spec: dict, required: tuple = ()) -> dict:
-    _check_keys(where, table, spec)
+        if key not in spec:
+            problems.add(f"{where}: unknown key '{key}' (allowed: {', '.join(spec)})")
     for key in required:
         if key not in table:
-            raise ConfigError(f"{where}: missing key '{key}'")
-    return {k: _check_type(where, k, v, spec[k]) for k, v in table.items()}
+            problems.add(f"{where}: missing key '{key}'")
+    out = {}
+    for k, v in table.items():
+        if k in spec:
+            v = _check_type(where, k, v, spec[k], problems)
+            if v is not _BAD:
+                out[k] = v
+    return out
 
 
 CAMERA_KEYS = {
@@ -142,93 +163,35 @@ def known_schemes() -> list[str]:
 
 
 def parse_config(data: dict, path: Optional[Path] = None) -> RigConfig:
-    _check_keys("config", data, TOP_KEYS)
+    """A RigConfig from parsed TOML; a `ConfigError` lists every problem found (`.problems`)."""
+    problems = _Problems()
+    for key in data:
+        if key not in TOP_KEYS:
+            problems.add(f"config: unknown key '{key}' (allowed: {', '.join(TOP_KEYS)})")
+    tables = {}
     for key, typ in TOP_KEYS.items():
         if key in data and not isinstance(data[key], typ):
             what = "an array of tables ([[cameras]])" if typ is list else "a table"
-            raise ConfigError(f"{key}: must be {what}")
-    rig = _fields("rig", data.get("rig", {}), RIG_KEYS)
-    cams_raw = data.get("cameras")
-    if not cams_raw:
-        raise ConfigError("cameras: at least one [[cameras]] entry is required")
-
-    schemes = known_schemes()
-    cameras: list[CameraConfig] = []
-    seen_names: set[str] = set()
-    seen_roles: dict[str, str] = {}
-    for i, raw in enumerate(cams_raw):
-        where = f"cameras[{i}]"
-        if not isinstance(raw, dict):
-            raise ConfigError(f"{where}: must be a table")
-        vals = _fields(where, raw, CAMERA_KEYS, required=("name", "uri"))
-        name = vals["name"]
-        where = f"cameras[{i}] ('{name}')"
-        if not name or not all(ch.isalnum() or ch in "-_" for ch in name):
-            raise ConfigError(f"{where}.name: use letters, digits, '-' and '_' only, got {name!r}")
-        if name in seen_names:
-            raise ConfigError(f"{where}.name: duplicate camera name '{name}' (names must be unique)")
-        seen_names.add(name)
-        uri = vals["uri"]
-        if "://" not in uri:
-            raise ConfigError(f"{where}.uri: {uri!r} is not a URI (expected scheme://address, e.g. aravis://127.0.0.1, sim://left)")
-        scheme = uri.split("://", 1)[0]
-        if scheme not in schemes:
-            raise ConfigError(f"{where}.uri: unknown scheme '{scheme}' (allowed: {', '.join(schemes)})")
-        role = vals.get("role", "supervision")
-        if role not in ROLES:
-            raise ConfigError(f"{where}.role: {role!r} is not allowed (allowed: {', '.join(ROLES)})")
-        if role in ("left", "right"):
-            if role in seen_roles:
-                raise ConfigError(f"{where}.role: a second '{role}' camera (already '{seen_roles[role]}'); at most one left and one right")
-            seen_roles[role] = name
-        pf = vals.get("pixel_format", "Mono8")
-        if pf not in PIXEL_FORMATS:
-            raise ConfigError(f"{where}.pixel_format: unsupported {pf!r} (allowed: {', '.join(PIXEL_FORMATS)})")
-        trig = vals.get("trigger", "free")
-        if trig not in TRIGGER_MODES:
-            raise ConfigError(f"{where}.trigger: {trig!r} is not allowed (allowed: {', '.join(TRIGGER_MODES)})")
-        for key in ("width", "height"):
-            if key in vals and not 1 <= vals[key] <= 16384:
-                raise ConfigError(f"{where}.{key}: must be between 1 and 16384, got {vals[key]}")
-        if "fps" in vals and not 0 < vals["fps"] <= 10000:
-            raise ConfigError(f"{where}.fps: must be between 0 and 10000, got {vals['fps']}")
-        if "exposure_us" in vals and vals["exposure_us"] <= 0:
-            raise ConfigError(f"{where}.exposure_us: must be positive, got {vals['exposure_us']}")
-        if scheme == "sim" and vals.get("sim"):
-            _check_sim_options(f"{where}.sim", vals["sim"], "camera")
-        elif vals.get("sim"):
-            raise ConfigError(f"{where}.sim: sensor-model options apply to sim:// cameras only")
-        cameras.append(CameraConfig(**vals))
-
-    trigger = None
-    if "trigger" in data:
-        t = _fields("trigger", data["trigger"], TRIGGER_KEYS, required=("uri",))
-        if "://" not in t["uri"]:
-            raise ConfigError(f"trigger.uri: {t['uri']!r} is not a URI (e.g. serial:///dev/ttyACM0, socket://127.0.0.1:7000, sim://trigger)")
-        if "rate_hz" in t and not 0 < t["rate_hz"] <= 10000:
-            raise ConfigError(f"trigger.rate_hz: must be between 0 and 10000, got {t['rate_hz']}")
-        if "pulse_width_us" in t and t["pulse_width_us"] <= 0:
-            raise ConfigError(f"trigger.pulse_width_us: must be positive, got {t['pulse_width_us']}")
-        if t.get("sim"):
-            _check_sim_options("trigger.sim", t["sim"], "trigger")
-        trigger = TriggerConfig(**t)
-    elif any(c.trigger == "hardware" for c in cameras):
-        first = next(c.name for c in cameras if c.trigger == "hardware")
-        raise ConfigError(f"cameras ('{first}').trigger: 'hardware' needs a [trigger] board (add [trigger] uri = ...)")
-
-    live = LiveConfig(**_fields("live", data.get("live", {}), LIVE_KEYS))
-    if not 0 < live.port < 65536:
-        raise ConfigError(f"live.port: must be between 1 and 65535, got {live.port}")
-    sim = data.get("sim", {})
+            problems.add(f"{key}: must be {what}")
+        elif key in data:
+            tables[key] = data[key]
+    rig = _fields("rig", tables.get("rig", {}), RIG_KEYS, problems)
+    cameras, hardware = _parse_cameras(tables.get("cameras"), "cameras" in data, problems)
+    trigger = _parse_trigger(tables, hardware, problems)
+    live_vals = _fields("live", tables.get("live", {}), LIVE_KEYS, problems)
+    if "port" in live_vals and not 0 < live_vals["port"] < 65536:
+        problems.add(f"live.port: must be between 1 and 65535, got {live_vals.pop('port')}")
+    sim = tables.get("sim", {})
     if sim:
-        _check_sim_options("sim", sim, "scene")
+        _check_sim_options("sim", sim, "scene", problems)
+    problems.raise_if_any()
     cfg = RigConfig(
         name=rig.get("name", "rig"),
         cameras=cameras,
         trigger=trigger,
         calibration=rig.get("calibration"),
         storage=rig.get("storage", "recordings"),
-        live=live,
+        live=LiveConfig(**live_vals),
         sim=dict(sim),
         path=path,
     )
@@ -237,22 +200,150 @@ def parse_config(data: dict, path: Optional[Path] = None) -> RigConfig:
     return cfg
 
 
-def _check_sim_options(where: str, table: dict, kind: str) -> None:
-    """Simulator options are validated by the simulator, which owns their meaning."""
+def _parse_cameras(cams_raw, given: bool, problems: _Problems) -> tuple[list[CameraConfig], list[str]]:
+    """The cameras without a mistake, and the names of those (good or not) set to hardware trigger."""
+    if not cams_raw:
+        if not given or isinstance(cams_raw, list):
+            problems.add("cameras: at least one [[cameras]] entry is required")
+        return [], []
+    hardware: list[str] = []
+    schemes = known_schemes()
+    cameras: list[CameraConfig] = []
+    seen_names: set[str] = set()
+    seen_roles: dict[str, str] = {}
+    for i, raw in enumerate(cams_raw):
+        where = f"cameras[{i}]"
+        if not isinstance(raw, dict):
+            problems.add(f"{where}: must be a table")
+            continue
+        before = len(problems.lines)
+        vals = _fields(where, raw, CAMERA_KEYS, problems, required=("name", "uri"))
+        name = vals.get("name")
+        if name is not None:
+            where = f"cameras[{i}] ('{name}')"
+            if not name or not all(ch.isalnum() or ch in "-_" for ch in name):
+                problems.add(f"{where}.name: use letters, digits, '-' and '_' only, got {name!r}")
+            elif name in seen_names:
+                problems.add(f"{where}.name: duplicate camera name '{name}' (names must be unique)")
+            seen_names.add(name)
+        uri = vals.get("uri")
+        scheme = None
+        if uri is not None:
+            if "://" not in uri:
+                problems.add(f"{where}.uri: {uri!r} is not a URI (expected scheme://address, e.g. aravis://127.0.0.1, sim://left)")
+            else:
+                scheme = uri.split("://", 1)[0]
+                if scheme not in schemes:
+                    problems.add(f"{where}.uri: unknown scheme '{scheme}' (allowed: {', '.join(schemes)})")
+        role = vals.get("role", "supervision")
+        if role not in ROLES:
+            problems.add(f"{where}.role: {role!r} is not allowed (allowed: {', '.join(ROLES)})")
+        elif role in ("left", "right"):
+            if role in seen_roles:
+                problems.add(f"{where}.role: a second '{role}' camera (already '{seen_roles[role]}'); at most one left and one right")
+            else:
+                seen_roles[role] = name
+        pf = vals.get("pixel_format", "Mono8")
+        if pf not in PIXEL_FORMATS:
+            problems.add(f"{where}.pixel_format: unsupported {pf!r} (allowed: {', '.join(PIXEL_FORMATS)})")
+        trig = vals.get("trigger", "free")
+        if trig == "hardware":
+            hardware.append(name or where)
+        if trig not in TRIGGER_MODES:
+            problems.add(f"{where}.trigger: {trig!r} is not allowed (allowed: {', '.join(TRIGGER_MODES)})")
+        for key in ("width", "height"):
+            if key in vals and not 1 <= vals[key] <= 16384:
+                problems.add(f"{where}.{key}: must be between 1 and 16384, got {vals[key]}")
+        if "fps" in vals and not 0 < vals["fps"] <= 10000:
+            problems.add(f"{where}.fps: must be between 0 and 10000, got {vals['fps']}")
+        if "exposure_us" in vals and vals["exposure_us"] <= 0:
+            problems.add(f"{where}.exposure_us: must be positive, got {vals['exposure_us']}")
+        if vals.get("sim") and scheme == "sim":
+            _check_sim_options(f"{where}.sim", vals["sim"], "camera", problems)
+        elif vals.get("sim") and scheme is not None:
+            problems.add(f"{where}.sim: sensor-model options apply to sim:// cameras only")
+        if len(problems.lines) == before:
+            cameras.append(CameraConfig(**vals))
+    return cameras, hardware
+
+
+def _parse_trigger(tables: dict, hardware: list[str], problems: _Problems) -> Optional[TriggerConfig]:
+    if "trigger" not in tables:
+        if hardware:
+            problems.add(f"cameras ('{hardware[0]}').trigger: 'hardware' needs a [trigger] board (add [trigger] uri = ...)")
+        return None
+    before = len(problems.lines)
+    t = _fields("trigger", tables["trigger"], TRIGGER_KEYS, problems, required=("uri",))
+    if "uri" in t and "://" not in t["uri"]:
+        problems.add(f"trigger.uri: {t['uri']!r} is not a URI (e.g. serial:///dev/ttyACM0, socket://127.0.0.1:7000, sim://trigger)")
+    if "rate_hz" in t and not 0 < t["rate_hz"] <= 10000:
+        problems.add(f"trigger.rate_hz: must be between 0 and 10000, got {t['rate_hz']}")
+    if "pulse_width_us" in t and t["pulse_width_us"] <= 0:
+        problems.add(f"trigger.pulse_width_us: must be positive, got {t['pulse_width_us']}")
+    if t.get("sim"):
+        _check_sim_options("trigger.sim", t["sim"], "trigger", problems)
+    return TriggerConfig(**t) if len(problems.lines) == before else None
+
+
+def _check_sim_options(where: str, table: dict, kind: str, problems: _Problems) -> None:
+    """Simulator options are validated by the simulator, which owns their meaning; one key at a time,
+    so that every bad key is reported."""
     from rig.cameras.sim import check_options
 
+    for key, value in table.items():
+        try:
+            check_options({key: value}, kind)
+        except ValueError as exc:
+            problems.add(f"{where}.{exc}")
+
+
+# ---- the calibration file a config names -----------------------------------------------------------
+
+def calibration_problems(cfg: RigConfig) -> list[str]:
+    """What is wrong with the calibration file `cfg` names, one line each (empty when it is fine or
+    there is none): it must exist, parse, and hold every camera of the config at the config's size.
+    A take recorded with a calibration that does not fit its cameras would be unusable."""
+    if not cfg.calibration:
+        return []
+    from calibration.camera import CalibrationError, RigCalibration
+
+    path = cfg.resolve(cfg.calibration)
+    fix = "recalibrate (`rig calibrate capture`, then `rig calibrate run`) or remove the key"
+    if not path.is_file():
+        what = "is a folder, not a file" if path.is_dir() else "does not exist"
+        return [f"rig.calibration: {path} {what} ({fix})"]
     try:
-        check_options(table, kind)
-    except ValueError as exc:
-        raise ConfigError(f"{where}.{exc}") from None
+        calib = RigCalibration.load(path)
+    except CalibrationError as exc:
+        return [f"rig.calibration: {exc} ({fix})"]
+    except (UnicodeDecodeError, ValueError):  # binary garbage: not even text
+        return [f"rig.calibration: {path}: not a calibration file (not JSON text) ({fix})"]
+    out = []
+    for cam in cfg.cameras:
+        if cam.name not in calib:
+            out.append(f"rig.calibration: camera '{cam.name}' of the config is not in {path} (it has: {', '.join(calib.names)}); {fix}")
+            continue
+        model = calib[cam.name]
+        if (model.width, model.height) != (cam.width, cam.height):
+            out.append(f"rig.calibration: camera '{cam.name}' is {cam.width}x{cam.height} in the config but "
+                       f"{model.width}x{model.height} in {path}; {fix}, or set its width and height back")
+    return out
 
 
-def load_config(path: str | Path) -> RigConfig:
+def load_config(path: str | Path, check_calibration: bool = True) -> RigConfig:
+    """Read and check a config file. Every problem is collected: the `ConfigError` says the first in
+    its message and lists them all in `.problems`, each prefixed with the file's path. With
+    `check_calibration` (every command but the one that makes a calibration) the calibration file the
+    config names is checked too."""
     path = Path(path)
     try:
         text = path.read_text()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, not a config file") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file (a rig config is TOML)") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
     try:
@@ -260,9 +351,14 @@ def load_config(path: str | Path) -> RigConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     try:
-        return parse_config(data, path)
+        cfg = parse_config(data, path)
     except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise ConfigError.of([f"{path}: {line}" for line in exc.problems]) from None
+    if check_calibration:
+        problems = calibration_problems(cfg)
+        if problems:
+            raise ConfigError.of([f"{path}: {line}" for line in problems])
+    return cfg
 
 
 # ---- writing ---------------------------------------------------------------------------------------

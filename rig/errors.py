@@ -11,9 +11,24 @@ class RigError(ReportedError):
 
 
 class ConfigError(RigError):
-    """A rig configuration or command-line value is invalid."""
+    """A rig configuration or command-line value is invalid.
+
+    `problems` lists every mistake found, one line each (a config file can have several); the message
+    is the first, with a count of the others, so that other commands still print one line.
+    """
 
     exit_code = 2
+
+    def __init__(self, message: str, problems: list[str] | None = None):
+        super().__init__(message)
+        self.problems = list(problems) if problems else [message]
+
+    @classmethod
+    def of(cls, problems: list[str]) -> "ConfigError":
+        more = len(problems) - 1
+        message = problems[0] if not more else (
+            f"{problems[0]} (and {more} more problem{'s' if more > 1 else ''}: `rig config check` lists every one)")
+        return cls(message, problems)
 
 
 class BackendError(ConfigError):

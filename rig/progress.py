@@ -1,6 +1,9 @@
-"""What a long command shows on a terminal while it works: a status line, and a progress bar for a
-step with a known length. Both are silent when the stream is not a terminal (piped, redirected to
-a file, captured by a test), so machine-read output stays clean.
+"""What a long command shows while it works: a status line, and a progress bar for a step with a
+known length, on a terminal; notes, one plain line per start-up phase, on stderr.
+
+The status line and the bar are silent when the stream is not a terminal (piped, redirected to a
+file, captured by a test), so machine-read output stays clean. Notes are plain lines on a terminal
+or not (they read as well in a log), and silent in --json mode, where stderr carries only errors.
 
 Drawing is left to `rich` (terminal width, cursor handling, redraw in place); rich is imported only
 when there is a terminal to draw on.
@@ -24,6 +27,44 @@ def _console(stream: TextIO) -> Any:
 
     # the terminal test is ours (isatty, as always); rich must not second-guess it from the environment
     return Console(file=stream, force_terminal=True, highlight=False, markup=False)
+
+
+MIN_RATE_S = 1.0  # a rate over a shorter span is noise: the first sets can land microseconds apart
+MIN_RATE_COUNT = 5
+
+
+def rate(count: float, elapsed: float, *, min_elapsed: float = MIN_RATE_S, min_count: float = MIN_RATE_COUNT) -> Optional[float]:
+    """`count` per second over `elapsed` seconds, or None while too little has passed for the rate
+    to mean anything (a status line showed "124008 sets/s" for its first set)."""
+    if elapsed < min_elapsed or count < min_count:
+        return None
+    return count / elapsed
+
+
+def rate_text(value: Optional[float], width: int = 5, decimals: int = 1) -> str:
+    """A rate for a status line: the number, or dashes of the same width until there is one."""
+    return f"{value:{width}.{decimals}f}" if value is not None else "--".rjust(width)
+
+
+class Notes:
+    """One plain line on stderr per start-up phase, e.g. `rig: warming up the trigger board clock
+    (3.0 s)`, so that a start that takes seconds is never silent. Call it with the text. Quiet (the
+    --json mode) prints nothing. A library takes it as an optional callback and stays silent
+    without one."""
+
+    def __init__(self, stream: TextIO | None = None, quiet: bool = False):
+        self.stream = stream
+        self.quiet = quiet
+
+    def __call__(self, text: str) -> None:
+        if self.quiet:
+            return
+        stream = self.stream or sys.stderr  # looked up late: tests and `rig demo` swap sys.stderr
+        try:
+            stream.write(f"rig: {text}\n")
+            stream.flush()
+        except (OSError, ValueError):  # a closed or broken stderr must not stop the work
+            pass
 
 
 class StatusLine:

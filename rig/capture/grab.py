@@ -11,16 +11,19 @@ import json
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
 
 from common.files import atomic_path
 from rig.cameras import open_camera
+from rig.capture.session import RigSession, prerender_note
 from rig.config import RigConfig
 from rig.errors import ConfigError, DeviceError, RigError, StorageError
 from sync.frames import Frame
+
+INDEX = "frames.jsonl"
 
 
 @dataclass
@@ -74,7 +77,12 @@ class _Index:
     """frames.jsonl, appended and flushed one record at a time from several threads."""
 
     def __init__(self, path: Path):
-        self._f = open(path, "a", buffering=1)
+        try:
+            self._f = open(path, "x", buffering=1)  # "x": never append to an earlier grab's index
+        except FileExistsError:
+            raise ConfigError(f"{path.parent}: already holds a grab; choose a new folder (nothing was overwritten)") from None
+        except OSError as exc:
+            raise StorageError(f"{path}: cannot create the index ({exc.strerror})") from None
         self._lock = threading.Lock()
 
     def append(self, record: dict) -> None:
@@ -87,10 +95,15 @@ class _Index:
         self._f.close()
 
 
-def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0) -> GrabResult:
+def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0,
+         notes: Optional[Callable[[str], None]] = None) -> GrabResult:
+    """Grab `n` frames per camera into `out_dir`, which must not hold a grab already (its index
+    would be appended to and its images overwritten). `notes` hears the start-up phases."""
     if n < 1:
         raise ConfigError(f"-n: must be at least 1, got {n}")
     out_dir = Path(out_dir)
+    if (out_dir / INDEX).exists():
+        raise ConfigError(f"{out_dir}: already holds a grab; choose a new folder (nothing was overwritten)")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         for c in cfg.cameras:
@@ -99,12 +112,15 @@ def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0) -> GrabRes
         raise StorageError(f"{out_dir}: cannot create output folder ({exc.strerror})") from None
     result = GrabResult(out_dir)
     if any(c.trigger == "hardware" for c in cfg.cameras):
-        return _grab_with_board(cfg, n, out_dir, result)
+        return _grab_with_board(cfg, n, out_dir, result, notes)
     cameras = []
     try:
         for c in cfg.cameras:  # open all first: a bad URI fails before anything is written
             cameras.append(open_camera(c))
-        index = _Index(out_dir / "frames.jsonl")
+        note = prerender_note({cam.name: cam for cam in cameras})
+        if note and notes is not None:
+            notes(note)
+        index = _Index(out_dir / INDEX)
         try:
             threads = []
             for cam in cameras:
@@ -138,16 +154,15 @@ def _save(frame: Frame, i: int, out_dir: Path, index: _Index, r: CameraResult) -
     r.last_ts = frame.host_ts_ns
 
 
-def _grab_with_board(cfg: RigConfig, n: int, out_dir: Path, result: GrabResult) -> GrabResult:
+def _grab_with_board(cfg: RigConfig, n: int, out_dir: Path, result: GrabResult,
+                     notes: Optional[Callable[[str], None]]) -> GrabResult:
     """Hardware-triggered cameras: a train of N pulses from the rig's trigger board."""
-    from rig.capture.session import RigSession
-
     for c in cfg.cameras:
         result.cameras[c.name] = CameraResult()
-    index = _Index(out_dir / "frames.jsonl")
+    index = _Index(out_dir / INDEX)
     write_error: Optional[StorageError] = None
     try:
-        with RigSession(cfg) as session:
+        with RigSession(cfg, on_phase=notes) as session:
             session.start(pulses=n)
             try:
                 for fs in session.framesets():

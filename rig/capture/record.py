@@ -5,11 +5,11 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 from rig.config import RigConfig
 from rig.errors import ConfigError
-from rig.progress import StatusLine
+from rig.progress import StatusLine, rate, rate_text
 from rig.cameras.sim import take_truth
 from rig.storage.recorder import SequenceWriter
 
@@ -53,7 +53,9 @@ class RecordResult:
 
 
 def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Optional[int] = None,
-           status: Optional[StatusLine] = None) -> RecordResult:
+           status: Optional[StatusLine] = None, notes: Optional[Callable[[str], None]] = None) -> RecordResult:
+    """Record to the new folder `out`; `status` shows the take as it goes, `notes` hears the start-up
+    phases (rig/progress.py)."""
     from rig.capture.session import RigSession
 
     if seconds is None and sets is None:
@@ -75,7 +77,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     session = None
     try:
         # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
-        session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S)
+        session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S, on_phase=notes)
         with session:
             # A board rig records a train of exactly N pulses; otherwise the session is stopped when
             # enough is recorded, and every set still in flight is written before the end.
@@ -125,6 +127,9 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
 def _status_text(result: RecordResult, writer: SequenceWriter, session, elapsed: float, out: Path) -> str:
     drops = " ".join(f"{n}:{s.get('dropped', 0)}" for n, s in session.camera_stats().items())
     free = shutil.disk_usage(out).free / 1e9
-    rate = result.sets / elapsed if elapsed > 0 else 0.0
-    mbps = writer.bytes_written / 1e6 / elapsed if elapsed > 0 else 0.0
-    return f"{elapsed:6.1f} s  {result.sets} sets  {rate:5.1f} sets/s  drops {drops}  {mbps:6.1f} MB/s  {free:6.1f} GB free"
+    # `elapsed` runs from the first set: the sets after it came in that time; no rate at all until
+    # it spans enough time and sets to be one
+    sets_per_s = rate(result.sets - 1, elapsed)
+    mb_per_s = sets_per_s * writer.bytes_written / 1e6 / result.sets if sets_per_s is not None else None
+    return (f"{elapsed:6.1f} s  {result.sets} sets  {rate_text(sets_per_s)} sets/s  drops {drops}  "
+            f"{rate_text(mb_per_s, 6)} MB/s  {free:6.1f} GB free")

@@ -42,6 +42,17 @@ _END = object()
 MIN_WARM_ROUND_TRIPS = 100  # usable board time replies the clock model holds before the first pulse
 
 
+def prerender_note(cameras: dict[str, Any]) -> Optional[str]:
+    """What to say before starting `cameras` (name -> open camera) when simulated ones among them
+    pre-render their scene loop first (seconds per camera the first time; then it comes from the
+    loop cache), else None. A sim camera with a loop has a `sensor` whose `loop_frames` is not 0,
+    as SimCamera.prepare tests; other cameras have no such thing."""
+    names = [n for n, cam in cameras.items() if getattr(getattr(cam, "sensor", None), "loop_frames", 0)]
+    if not names:
+        return None
+    return f"preparing the simulated scene for {', '.join(names)} (rendered the first time, then loaded from the cache)"
+
+
 @dataclass
 class SessionEvent:
     kind: str  # board_connected, board_disconnected, board_error, link_error, boot, camera_lost, train_done, resumed
@@ -55,8 +66,12 @@ class RigSession:
 
     def __init__(self, config: RigConfig, *, warm_up_s: float = 3.0, max_wait_s: Optional[float] = None,
                  resume: bool = True, open_camera: Callable = _open_camera,
-                 on_event: Optional[Callable[[SessionEvent], None]] = None):
+                 on_event: Optional[Callable[[SessionEvent], None]] = None,
+                 on_phase: Optional[Callable[[str], None]] = None):
+        """`on_phase(text)` hears what a slow start is doing (opened the cameras, pre-rendering the
+        simulated scene, warming up the board clock): commands print it as notes (rig/progress.py)."""
         self.config = config
+        self._phase = on_phase or (lambda text: None)
         self.warm_up_s = warm_up_s
         self.max_wait_s = max_wait_s
         self.resume = resume
@@ -93,6 +108,10 @@ class RigSession:
         except BaseException:
             self.close()
             raise
+        # said once everything is open, not before: a camera or URI that fails to open is then the
+        # command's only line on stderr
+        board = f" and the trigger board {self.config.trigger.uri}" if self.board is not None else ""
+        self._phase(f"opened {len(self.cameras)} cameras ({', '.join(self.cameras)}){board}")
         return self
 
     def _open_board(self) -> None:
@@ -140,6 +159,9 @@ class RigSession:
         if self._started:
             raise DeviceError("session already started")
         self._started = True
+        note = prerender_note(self.cameras)
+        if note:
+            self._phase(note)
         for cam in self.cameras.values():
             # slow preparations first (a sim camera pre-renders its loop), so that the cameras then
             # start within moments of each other rather than one long preparation apart
@@ -169,7 +191,10 @@ class RigSession:
         here, for the same span of board time. Should a busy host have spoilt most round trips, it
         waits on for MIN_WARM_ROUND_TRIPS usable ones (at most another warm_up_s)."""
         clock = self.board.clock
-        self.board.warm_up(max(0.0, self.warm_up_s - clock.age_s()))
+        wait = max(0.0, self.warm_up_s - clock.age_s())
+        if wait > 0.5 and not self._trains:  # the first start only: a resume is reported by its event
+            self._phase(f"warming up the trigger board clock ({wait:.1f} s)")
+        self.board.warm_up(wait)
         give_up = time.monotonic() + self.warm_up_s
         while self.board.connected and (clock.fit is None or clock.fit.samples < MIN_WARM_ROUND_TRIPS) and time.monotonic() < give_up:
             self.board.warm_up(0.1)

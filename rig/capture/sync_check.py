@@ -3,6 +3,14 @@
 On a sim rig every figure is also checked against the simulator's truth: which pulse each frame
 really answered (mismatched sets, undetected and false drops) and the emulated board's real clock
 (the board-to-host mapping error). On real hardware the same run reports what can be observed.
+
+The report ends with a verdict against stated limits (`LIMITS`, each can be changed on the command
+line). Its skew is *exposure* skew: per set, the spread across cameras of when each exposure started
+relative to the trigger pulse (a hardware-triggered camera's frame time on its own clock against the
+fitted pulse time, so it is trigger-latency jitter; a constant per-camera latency is absorbed by the
+fit), which is what matters for the pictures. `rig record validate` reports *arrival* skew: the spread
+of the host times at which a set's frames reached the computer, which adds transfer, driver and
+scheduling delays and is normally far larger; it says nothing about when the pictures were taken.
 """
 from __future__ import annotations
 
@@ -15,16 +23,51 @@ from rig.config import RigConfig
 from rig.errors import ConfigError
 
 
+# Default limits of the verdict. Exposure skew well under a millisecond is what a hardware trigger
+# gives (real triggered cameras jitter by microseconds); the clock mapping must place every pulse far
+# within half a frame period; drops are the camera link's, but a check that loses 1 in 20 is not good.
+LIMITS = {"skew_p99_us": 1000.0, "clock_residual_p99_us": 1000.0, "drop_rate": 0.05, "mismatched_sets": 0, "errors": 0}
+
+
+def judge(report: dict, limits: Optional[dict] = None) -> tuple[str, list[str]]:
+    """("pass" | "fail", one line per limit the run broke)."""
+    lim = dict(LIMITS, **(limits or {}))
+    failures = []
+    if not report["sets"]:
+        failures.append("no frame sets were made")
+    p99 = (report.get("skew_us") or {}).get("p99")
+    if p99 is not None and p99 > lim["skew_p99_us"]:
+        failures.append(f"exposure skew p99 {p99:.1f} us > {lim['skew_p99_us']:g} us")
+    clock = report.get("clock_residual_us")
+    if clock is not None and clock > lim["clock_residual_p99_us"]:
+        failures.append(f"board-to-host clock error p99 {clock:.1f} us > {lim['clock_residual_p99_us']:g} us")
+    wanted = report.get("pulses") or report["sets"]
+    for name, drops in report["drops_detected"].items():
+        rate = drops / wanted if wanted else 0.0
+        if rate > lim["drop_rate"]:
+            failures.append(f"{name}: {drops} of {wanted} frames missing ({rate:.1%}) > {lim['drop_rate']:.1%}")
+    mismatched = report.get("mismatched_sets")
+    if mismatched is not None and mismatched > lim["mismatched_sets"]:
+        failures.append(f"{mismatched} sets hold a frame of another pulse (simulator truth) > {lim['mismatched_sets']}")
+    if len(report["errors"]) > lim["errors"]:
+        failures.append(f"{len(report['errors'])} errors during the run")
+    return ("fail" if failures else "pass"), failures
+
+
 def _p(values, q) -> Optional[float]:
     return float(np.percentile(values, q)) if len(values) else None
 
 
 def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str], None]] = None,
-               session_options: Optional[dict] = None) -> dict:
+               session_options: Optional[dict] = None, limits: Optional[dict] = None) -> dict:
     from rig.capture.session import RigSession
 
-    if not seconds > 0:
+    if not seconds > 0 or seconds == float("inf"):
         raise ConfigError(f"--seconds must be positive, got {seconds}")
+    limits = dict(LIMITS, **(limits or {}))
+    for key, value in limits.items():
+        if not value >= 0:
+            raise ConfigError(f"limit {key} must be >= 0, got {value}")
     truth_cams = {c.name for c in cfg.cameras if c.scheme == "sim"}
     mismatched = 0
     misassigned = 0
@@ -98,6 +141,8 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
                 truth["undetected_drops"][name] = len(injected - detected[name])
                 truth["false_drops"][name] = len(detected[name] - injected)
             report["truth"] = truth
+    report["limits"] = limits
+    report["verdict"], report["failures"] = judge(report, limits)
     return report
 
 

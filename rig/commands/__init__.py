@@ -12,8 +12,29 @@ import pkgutil
 
 
 class _Parser(argparse.ArgumentParser):
+    """Every parser of the CLI (argparse makes sub-parsers of the parent's class).
+
+    Options go before or after positionals on every command: a command's own parser (one without
+    sub-commands) parses intermixed, options first and then the positionals from what is left.
+    Plain argparse matches positionals in runs between options, so two optional positionals such as
+    `rig record validate DIR` were both consumed by `validate` alone when an option came between
+    (`rig record validate --json DIR`: "unrecognized arguments"). argparse cannot parse a parser
+    with sub-commands intermixed, hence per command rather than once at the top.
+    """
+
+    _intermixing = False  # set while parse_known_intermixed_args runs: its own inner passes are plain
+
     def error(self, message: str):  # one line, exit 2
         self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def parse_known_args(self, args=None, namespace=None):
+        if self._intermixing or self._subparsers is not None:
+            return super().parse_known_args(args, namespace)
+        self._intermixing = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._intermixing = False
 
 
 def build_parser() -> argparse.ArgumentParser:

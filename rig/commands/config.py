@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from rig.errors import ConfigError
@@ -24,22 +25,32 @@ def register(sub) -> None:
 
     check = s.add_parser("check", help="validate a rig configuration; one line per problem, exit 2 when invalid")
     check.add_argument("file", type=Path)
-    check.add_argument("--json", action="store_true", help="print the parsed configuration as one JSON object")
+    check.add_argument("--json", action="store_true",
+                       help='print one JSON object: {"ok": true, "config": {...}} or {"ok": false, "problems": [one line each]}')
     check.set_defaults(func=cmd_check)
 
 
 def cmd_init(args: argparse.Namespace) -> int:
+    from common.files import atomic_write_bytes
     from rig.cameras.sim import sim_rig_config
+    from rig.commands._paths import output_file
     from rig.config import dump_config, parse_config
+    from rig.errors import StorageError
 
-    if args.file.exists() and not args.force:
+    if args.file.exists() and not args.file.is_dir() and not args.force:
         raise ConfigError(f"{args.file}: already exists (use --force to overwrite)")
+    output_file(args.file)  # a folder, or a folder we cannot write in: one line, before anything
     if args.cameras < 2:
         raise ConfigError(f"--cameras: a rig needs at least the left and right cameras (2), got {args.cameras}")
     data = sim_rig_config(n_cameras=args.cameras, width=args.width, height=args.height, fps=args.fps)
-    cfg = parse_config(data)  # the file we write must pass our own check
-    args.file.parent.mkdir(parents=True, exist_ok=True)
-    args.file.write_text(dump_config(cfg))
+    try:
+        cfg = parse_config(data)  # the file we write must pass our own check (and --width etc. are user input)
+    except ConfigError as exc:
+        raise ConfigError(f"{'; '.join(exc.problems)} (from the command line options)") from None
+    try:
+        atomic_write_bytes(args.file, dump_config(cfg).encode(), make_parents=True)
+    except OSError as exc:
+        raise StorageError(f"{args.file}: could not write the config ({exc.strerror or exc})") from None
     print(f"wrote {args.file}: simulated rig with {len(cfg.cameras)} cameras ({', '.join(c.name for c in cfg.cameras)})")
     return 0
 
@@ -50,7 +61,14 @@ def cmd_check(args: argparse.Namespace) -> int:
     from rig.commands._output import emit_json
     from rig.config import load_config
 
-    cfg = load_config(args.file)
+    try:
+        cfg = load_config(args.file)
+    except ConfigError as exc:  # every problem, one line each (other commands print the first)
+        if args.json:
+            emit_json({"ok": False, "problems": exc.problems})
+        for line in exc.problems:
+            print(f"rig: error: {line}", file=sys.stderr)
+        return exc.exit_code
     if args.json:
         d = asdict(cfg)
         d["path"] = str(cfg.path)

@@ -7,7 +7,7 @@ import sys
 
 def register(sub) -> None:
     p = sub.add_parser("discover", help="list cameras of every backend (sim devices always)")
-    p.add_argument("--json", action="store_true", help="print a JSON list of devices (uri, backend, model, serial, ...)")
+    p.add_argument("--json", action="store_true", help='print one JSON object: {"devices": [{uri, backend, model, serial, ...}], "errors": {backend: why it could not look}}')
     p.set_defaults(func=cmd_discover)
 
 
@@ -17,11 +17,12 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
     problems: list[str] = []
     devices = discover_all(problems)
+    if args.json:  # one object, as every --json prints; a backend that could not look is not fatal
+        errors = dict(line.split(": ", 1) if ": " in line else (line, "failed") for line in problems)
+        emit_json({"devices": [d.to_dict() for d in devices], "errors": errors})
+        return 0
     for line in problems:
         print(f"rig: note: backend {line}", file=sys.stderr)
-    if args.json:
-        emit_json([d.to_dict() for d in devices])
-        return 0
     if not devices:
         print("no devices found")
     for d in devices:

@@ -27,7 +27,8 @@ def register(subparsers) -> None:
                    help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: tiny (default paper; ignored with --checkpoint)")
     e.add_argument("--fp16", action="store_true", help="also write MODEL.fp16.onnx (learned layers in float16, for GPUs)")
     e.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or later (default 18)")
-    e.add_argument("-o", "--output", required=True, metavar="model.onnx", help="ONNX file to write")
+    e.add_argument("-o", "--output", required=True, metavar="model.onnx",
+                   help="ONNX file to write; an earlier .onnx export there is replaced (atomically: a failed export leaves it as it was)")
     e.add_argument("--json", action="store_true", help="print one JSON object with the files written")
     e.set_defaults(func=cmd_export)
 
@@ -72,15 +73,18 @@ def _status():
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from inference.config import ModelConfig, Sizes
     from inference.errors import InferenceError
+
+    if args.opset < 18:
+        raise InferenceError(f"--opset {args.opset}: the pipeline needs opset 18 or later")
+    _check_export_output(args)  # before torch loads (seconds)
+
+    from inference.config import ModelConfig, Sizes
     from inference.export import export_onnx
     from inference.model.checkpoint import checkpoint_record, load_checkpoint
     from inference.model.pipeline import build_model
     from rig.commands._output import emit_json
 
-    if args.opset < 18:
-        raise InferenceError(f"--opset {args.opset}: the pipeline needs opset 18 or later")
     status = _status()
     if args.checkpoint:
         model = load_checkpoint(args.checkpoint)
@@ -115,6 +119,25 @@ def cmd_export(args: argparse.Namespace) -> int:
         if not trained:
             print("note: the weights are untrained; train a checkpoint and export it with --checkpoint for real output", file=sys.stderr)
     return 0
+
+
+def _check_export_output(args: argparse.Namespace) -> None:
+    """Before the (slow) export: the output must be writable, and only a model may be replaced.
+
+    An exported model is regenerable (the same checkpoint and options export it again), so a user
+    re-running `rig model export -o model.onnx` expects it replaced, as a compiler's `-o`; the export
+    writes atomically, so a failed export never leaves a torn model. What is not regenerable is
+    refused: any name not ending in .onnx (a mistyped `-o calib.json`: the export would refuse it
+    too, but only after building the model), and the checkpoint the model is exported from."""
+    from rig.commands._paths import output_file
+    from rig.errors import ConfigError
+
+    out = output_file(args.output)
+    if out.suffix != ".onnx":
+        raise ConfigError(f"{out}: the output file name must end in .onnx (nothing was written)")
+    for path in (out, out.with_name(out.stem + ".fp16.onnx")) if args.fp16 else (out,):
+        if args.checkpoint and path.exists() and Path(args.checkpoint).exists() and path.samefile(args.checkpoint):
+            raise ConfigError(f"{path}: is the checkpoint being exported; choose another output (nothing was overwritten)")
 
 
 def _snapshot_inputs(folder: str, left: str, right: str, target: str | None):

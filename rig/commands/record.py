@@ -9,15 +9,15 @@ from pathlib import Path
 
 def register(sub) -> None:
     p = sub.add_parser("record", help="record every camera of the rig in sync to a sequence folder; validate or repair one")
-    p.add_argument("action", nargs="?", choices=("validate", "repair"), help="validate DIR | repair DIR (omit to record)")
+    p.add_argument("action", nargs="?", choices=("validate", "repair"), help="validate DIR | repair DIR (omit to record); repair keeps every good set and the original index beside it")
     p.add_argument("dir", nargs="?", type=Path, help="sequence folder (validate / repair)")
     p.add_argument("-c", "--config", type=Path, help="rig configuration (TOML), to record")
-    p.add_argument("-o", "--out", type=Path, help="new sequence folder, to record")
+    p.add_argument("-o", "--out", type=Path, help="new (or empty) sequence folder, to record")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--seconds", type=float, help="record for this long")
     g.add_argument("--sets", type=int, help="record this many frame sets")
     p.add_argument("--pixels", action="store_true", help="validate: also decode every image (slower)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--json", action="store_true", help="print one JSON object (stderr: errors only)")
     p.set_defaults(func=cmd_record)
 
 
@@ -38,6 +38,8 @@ def _need_dir(args) -> Path:
 
     if args.dir is None:
         raise ConfigError(f"record {args.action}: name the sequence folder")
+    if args.dir.exists() and not args.dir.is_dir():
+        raise ConfigError(f"{args.dir}: is a file, not a sequence folder")
     if not args.dir.is_dir():
         raise ConfigError(f"{args.dir}: no such sequence folder")
     return args.dir
@@ -65,21 +67,47 @@ def _validate(args) -> int:
         if len(v.errors) > 20:
             print(f"  ... and {len(v.errors) - 20} more errors")
     if not v.readable:
-        print(f"rig: error: {v.root}: {len(v.errors)} problems (first: {v.errors[0]})", file=sys.stderr)
+        print(f"rig: error: {v.root}: {len(v.errors)} problems (first: {v.errors[0]}); "
+              f"`rig record repair` keeps every good set", file=sys.stderr)
         return 1
     return 0
 
 
 def _repair(args) -> int:
     from rig.commands._output import emit_json
-    from rig.storage.validate import repair
+    from rig.storage.repair import repair
+    from rig.storage.validate import validate
 
-    r = repair(_need_dir(args))
+    root = _need_dir(args)
+    r = repair(root)
+    after = validate(root)  # what is left that a repair of the index cannot mend (a corrupt calibration copy)
+    r["readable"] = after.readable
+    r["errors"] = after.errors
     if args.json:
         emit_json(r)
     else:
-        print(f"{r['path']}: kept {r['kept_sets']} sets, removed {r['removed_bytes']} bytes of torn index")
+        _print_repair(r)
+    if not after.readable:
+        print(f"rig: error: {root}: still not readable after the repair: {after.errors[0]}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _print_repair(r: dict) -> None:
+    if not r["changed"]:
+        print(f"{r['path']}: nothing to repair: {r['kept_sets']} sets, every indexed frame whole")
+        return
+    print(f"{r['path']}: kept {r['kept_sets']} of {r['sets_before']} sets; dropped {r['dropped_lines']} damaged index lines, "
+          f"marked {r['frames_marked_missing']} frames missing")
+    for c in r["dropped"][:20]:
+        if c["what"] == "line":
+            print(f"  line {c['line']}: dropped ({c['reason']})")
+        else:
+            print(f"  set {c['set']} {c['camera']}: {c['reason']}" + (f" ({c['file']})" if c.get("file") else ""))
+    if len(r["dropped"]) > 20:
+        print(f"  ... and {len(r['dropped']) - 20} more (all of them with --json)")
+    print(f"the original index is kept as {r['backup']}")
+    print(f"next: rig record validate {r['path']}")
 
 
 def _stop_on_sigterm(signum, frame) -> None:
@@ -90,20 +118,29 @@ def _stop_on_sigterm(signum, frame) -> None:
 def _record(args) -> int:
     from rig.capture.record import record
     from rig.commands._output import emit_json
+    from rig.commands._paths import new_output_folder
     from rig.config import load_config
-    from rig.progress import StatusLine
+    from rig.errors import ConfigError
+    from rig.progress import Notes, StatusLine, rate
 
+    if args.seconds is None and args.sets is None:
+        raise ConfigError("record: give --seconds S or --sets N")
+    if (args.seconds is not None and not args.seconds > 0) or (args.sets is not None and args.sets <= 0):
+        raise ConfigError("record: --seconds and --sets must be positive")
     cfg = load_config(args.config)
+    new_output_folder(args.out)  # a take is never written over or into another folder's files
     status = StatusLine(sys.stderr)
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
-    result = record(cfg, args.out, seconds=args.seconds, sets=args.sets, status=status)
+    result = record(cfg, args.out, seconds=args.seconds, sets=args.sets, status=status, notes=Notes(quiet=args.json))
     status.done()
     d = result.to_dict()
     if args.json:
         emit_json(d)
     else:
+        # rates only over a span long enough to mean something (a 3-set take lasts a fraction of a second)
+        rates = f"{d['sets_per_s']:.1f} sets/s, {d['mb_per_s']:.1f} MB/s, " if rate(d["sets"], d["seconds"]) is not None else ""
         print(f"recorded {d['sets']} sets ({d['complete_sets']} complete) in {d['seconds']:.1f} s to {result.out}: "
-              f"{d['sets_per_s']:.1f} sets/s, {d['mb_per_s']:.1f} MB/s, frames lost {sum(result.frames_lost.values())}")
+              f"{rates}frames lost {sum(result.frames_lost.values())}")
         for n in result.frames:
             print(f"  {n}: {result.frames[n]} frames, {result.drops.get(n, 0)} dropped by the camera link")
         print(f"next: rig record validate {result.out}")

@@ -19,24 +19,38 @@ def register(sub) -> None:
                     "nothing is hit), NAME.mask.png (people) and cameras.json (the exact calibration).")
     snap.add_argument("-c", "--config", required=True, type=Path, help="rig configuration (TOML) with sim:// cameras")
     snap.add_argument("-t", "--time", required=True, type=float, help="simulated time in seconds (>= 0)")
-    snap.add_argument("-o", "--out", required=True, type=Path, help="output folder")
-    snap.add_argument("--json", action="store_true", help="print a summary as one JSON object")
+    snap.add_argument("-o", "--out", required=True, type=Path, help="new (or empty) output folder")
+    snap.add_argument("--force", action="store_true",
+                      help="write into a folder that holds files already (an earlier snapshot's files of the same names are replaced)")
+    snap.add_argument("--json", action="store_true", help="print a summary as one JSON object (stderr: errors only)")
     snap.set_defaults(func=cmd_snapshot)
 
 
 def cmd_snapshot(args: argparse.Namespace) -> int:
+    from rig.commands._paths import new_output_folder, output_folder
     from rig.config import load_config
-    from rig.progress import StatusLine
+    from rig.progress import Notes, StatusLine
 
     if not math.isfinite(args.time) or args.time < 0:
         raise ConfigError(f"-t: time must be a number of seconds >= 0, got {args.time:g}")
     cfg = load_config(args.config)
     if not any(c.scheme == "sim" for c in cfg.cameras):
         raise ConfigError(f"{args.config}: no sim:// cameras to render (make one with `rig config init --sim`)")
+    # a snapshot can be made again, but the folder may hold anything (a take, someone's images)
+    if args.force:
+        output_folder(args.out)
+    elif args.out.is_dir() and any(args.out.iterdir()):
+        raise ConfigError(f"{args.out}: folder is not empty; choose a new folder, or --force to write into it (nothing was overwritten)")
+    else:
+        new_output_folder(args.out)
     from simulator.snapshot import write_snapshot
 
+    notes = Notes(quiet=args.json)
+    n = sum(c.scheme == "sim" for c in cfg.cameras)
+    notes(f"building the simulated scene and rendering {n} cameras at t = {args.time:g} s")
     status = StatusLine()
-    summary = write_snapshot(cfg, args.time, args.out, progress=status.update)
+    # on a terminal the live status says which camera is rendering; in a log, a line each
+    summary = write_snapshot(cfg, args.time, args.out, progress=status.update if status.enabled else notes)
     status.done(f"wrote {len(summary['cameras'])} cameras to {args.out}")
     skipped = [c.name for c in cfg.cameras if c.scheme != "sim"]
     if skipped:

@@ -21,6 +21,12 @@ def _header(channels: int, width: int, height: int, bytes_per_sample: int) -> by
     return b"%s\n%d %d\n%d\n" % (magic, width, height, maxval)
 
 
+def netpbm_header(width: int, height: int, channels: int, bytes_per_sample: int) -> bytes:
+    """The exact header the recorder writes for an image of this shape: a file that does not begin
+    with it is damaged (what `read_netpbm` would reject, found without reading the pixels)."""
+    return _header(channels, width, height, bytes_per_sample)
+
+
 def netpbm_suffix(channels: int) -> str:
     return ".ppm" if channels == 3 else ".pgm"
 

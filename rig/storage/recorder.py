@@ -33,8 +33,11 @@ class SequenceWriter:
                  extra: Optional[dict] = None, sync_interval: float = 0.5):
         """`cameras`: CameraConfig-like objects (name, role, width, height, pixel_format)."""
         self.root = Path(root)
-        if (self.root / INDEX).exists():
-            raise StorageError(f"{self.root}: already holds a sequence; choose a new folder")
+        # never write over or into what is there: a take, or any file of a take's names
+        taken = [n for n in (INDEX, META, FRAMES, CONFIG_COPY, CALIBRATION_COPY) if (self.root / n).exists()]
+        if taken:
+            what = "already holds a sequence" if INDEX in taken or META in taken else f"already holds {', '.join(taken)}"
+            raise StorageError(f"{self.root}: {what}; choose a new folder (nothing was overwritten)")
         try:
             for c in cameras:
                 (self.root / FRAMES / c.name).mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,9 @@
-"""`rig record validate` and `repair`: is every indexed frame whole, and cut the index back to where it is."""
+"""`rig record validate`: is every indexed frame whole; count sets, frames, gaps and skew.
+
+`rig record repair` is rig/storage/repair.py.
+"""
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -142,26 +144,3 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
     if v.sets == 0:
         v.warnings.append("no frame sets recorded")
     return v
-
-
-def repair(root: str | Path) -> dict[str, Any]:
-    """Truncate the index after the last set whose row and images are whole. Images are kept."""
-    root = Path(root)
-    meta = SequenceMeta.load(root)
-    entries = {c.name: c for c in meta.cameras}
-    scan = scan_index(root)
-    keep = 0
-    kept_rows = 0
-    for row, end in zip(scan.rows, scan.row_ends):
-        if end > scan.good_bytes or any(frame_problem(root, entries, row, cam, rec) for cam, rec in row["frames"].items()):
-            break
-        keep = end
-        kept_rows += 1
-    index = root / INDEX
-    removed = index.stat().st_size - keep
-    if removed:
-        with open(index, "r+b") as f:
-            f.truncate(keep)
-            f.flush()
-            os.fsync(f.fileno())
-    return {"path": str(root), "kept_sets": kept_rows, "removed_bytes": removed}

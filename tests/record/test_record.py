@@ -15,7 +15,8 @@ from rig.cameras.sim import sim_rig_config
 from rig.config import dump_config, load_config, parse_config
 from rig.storage.layout import INDEX
 from rig.storage.netpbm import netpbm_size
-from rig.storage.validate import repair, validate
+from rig.storage.repair import repair
+from rig.storage.validate import validate
 from tests.rig.cli_helpers import REPO, run_rig
 
 

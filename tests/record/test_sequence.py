@@ -13,7 +13,8 @@ from rig.storage.dataset import Sequence
 from rig.storage.recorder import SequenceWriter
 from rig.storage.layout import INDEX, SequenceError
 from rig.storage.netpbm import read_netpbm
-from rig.storage.validate import repair, validate
+from rig.storage.repair import repair
+from rig.storage.validate import validate
 from sync.frames import FrameSet
 from tests.rig.cli_helpers import assert_one_line_error, run_rig
 
@@ -93,7 +94,7 @@ def test_torn_tail_is_reported_and_repaired(tmp_path):
     assert not validate(seq_dir).torn_tail
 
 
-def test_missing_image_is_an_error_and_repair_cuts_before_it(tmp_path):
+def test_missing_image_is_an_error_and_repair_marks_only_that_frame_missing(tmp_path):
     seq_dir = tmp_path / "seq"
     write_sequence(seq_dir, n=6)
     rows = [json.loads(line) for line in (seq_dir / INDEX).read_text().splitlines()]
@@ -102,9 +103,10 @@ def test_missing_image_is_an_error_and_repair_cuts_before_it(tmp_path):
     assert proc.returncode == 1
     out = json.loads(proc.stdout)
     assert out["readable"] is False and out["readable_sets"] == 4 and "missing" in out["errors"][0]
-    repair(seq_dir)
+    r = repair(seq_dir)
+    assert r["kept_sets"] == 6 and r["frames_marked_missing"] == 1
     again = validate(seq_dir)
-    assert again.readable and again.sets == 4
+    assert again.readable and again.sets == 6 and again.missing == {"left": 1, "right": 0}
 
 
 def test_validate_rejects_a_folder_that_is_not_a_sequence(tmp_path):
@@ -153,7 +155,7 @@ def test_a_damaged_image_header_is_reported_not_a_crash(tmp_path):
         list(Sequence(seq_dir).samples(cameras=["left"]))
 
 
-def test_repair_cuts_where_validate_first_finds_damage(tmp_path):
+def test_repair_removes_a_camera_the_sequence_does_not_record_and_keeps_the_set(tmp_path):
     """A row naming a camera the sequence does not record is damage to both, so repair leaves a clean take."""
     seq_dir = tmp_path / "seq"
     write_sequence(seq_dir, n=6)
@@ -165,6 +167,7 @@ def test_repair_cuts_where_validate_first_finds_damage(tmp_path):
     index.write_text("".join(lines))
     v = validate(seq_dir)
     assert v.errors == ["set 3: unknown camera 'ghost'"] and v.readable_sets == 3
-    assert repair(seq_dir)["kept_sets"] == 3
+    r = repair(seq_dir)
+    assert r["kept_sets"] == 6 and [(c["what"], c["camera"]) for c in r["dropped"]] == [("camera", "ghost")]
     again = validate(seq_dir)
-    assert again.readable and again.sets == 3
+    assert again.readable and again.sets == 6 and again.complete_sets == 6
