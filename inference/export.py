@@ -30,7 +30,7 @@ import torch
 
 from common.files import atomic_path
 from inference.config import STAGES
-from inference.errors import InferenceError
+from inference.errors import InferenceError, OutputError
 from inference.model.checkpoint import seed_record
 from inference.model.pipeline import OUTPUT_NAMES, SplatSAP
 from inference.runtime.synthetic import example_inputs
@@ -264,4 +264,4 @@ def _save(proto: onnx.ModelProto, path: Path) -> None:
         with atomic_path(path) as tmp:
             onnx.save_model(proto, str(tmp), save_as_external_data=False)
     except OSError as exc:
-        raise InferenceError(f"{path}: cannot write ({exc.strerror or exc})") from None
+        raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None

@@ -17,7 +17,7 @@ import torch
 
 from common.files import atomic_path
 from inference.config import ModelConfig
-from inference.errors import InferenceError
+from inference.errors import InferenceError, OutputError
 from inference.model.pipeline import SplatSAP, build_model
 
 FORMAT = "splat-sap"
@@ -40,7 +40,7 @@ def save_checkpoint(model: SplatSAP, path: str | os.PathLike, meta: dict | None 
         with atomic_path(path, make_parents=True) as tmp:
             torch.save(data, tmp)
     except OSError as exc:
-        raise InferenceError(f"{path}: cannot write the checkpoint ({exc.strerror or exc})") from None
+        raise OutputError(f"{path}: cannot write the checkpoint ({exc.strerror or exc})") from None
     return path
 
 

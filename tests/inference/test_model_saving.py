@@ -31,8 +31,9 @@ def identity_model() -> onnx.ModelProto:
 
 def test_a_failed_model_write_is_one_line_and_leaves_nothing(tmp_path):
     (tmp_path / "m.onnx").mkdir()  # the rename onto a folder fails after the data is written
-    with pytest.raises(InferenceError, match=r"m\.onnx: cannot write \(Is a directory\)$"):
+    with pytest.raises(InferenceError, match=r"m\.onnx: cannot write \(Is a directory\)$") as failed:
         _save(identity_model(), tmp_path / "m.onnx")
+    assert failed.value.exit_code == 1  # a failure during the work, not bad input
     assert [p.name for p in tmp_path.iterdir()] == ["m.onnx"] and (tmp_path / "m.onnx").is_dir()
     _save(identity_model(), tmp_path / "ok.onnx")
     assert onnx.load(str(tmp_path / "ok.onnx")).graph.node[0].op_type == "Identity"
@@ -52,6 +53,7 @@ def test_checkpoint_round_trip_is_atomic(tmp_path):
     save_checkpoint(model, path, {"step": 2})
     assert torch.load(path, weights_only=True)["meta"] == {"step": 2}
     (tmp_path / "runs" / "dir.pt").mkdir()
-    with pytest.raises(InferenceError, match=r"dir\.pt: cannot write the checkpoint"):
+    with pytest.raises(InferenceError, match=r"dir\.pt: cannot write the checkpoint") as failed:
         save_checkpoint(model, tmp_path / "runs" / "dir.pt")
+    assert failed.value.exit_code == 1
     assert sorted(p.name for p in path.parent.iterdir()) == ["dir.pt", "step1.pt"]
