@@ -2,6 +2,12 @@
 rig from 50 views (intrinsics, stereo pair, joint bundle adjustment), with the accuracy reached.
 
     .venv/bin/python benchmarks/calibration.py [--views 50] [--json] [--synthetic]
+    .venv/bin/python benchmarks/calibration.py --session [--cameras 6] [--size 640x360]
+
+`--session`: the calibration `rig demo` makes. The simulated calibration session of an N-camera rig
+(simulator.calibration_session: the A0 board held at stations through the volume) is rendered at
+every station, detected, and solved with k3 held, from all the stations and from shorter first parts
+of the session; each result is compared with the simulator's exact cameras.
 
 With the simulator installed, the six-camera arc rig (1280x720) watches an A0 ChArUco board carried
 through the volume for `--views` time steps; detection is timed on every rendered image and the solve on
@@ -27,7 +33,7 @@ from calibration.boards import CharucoSpec, ChessboardSpec  # noqa: E402
 from calibration.compare import describe, errors_against_truth  # noqa: E402
 from calibration.detect import make_detector  # noqa: E402
 from calibration.images import DetectionSet  # noqa: E402
-from calibration.solve import calibrate_rig  # noqa: E402
+from calibration.solve import Options, calibrate_rig  # noqa: E402
 from calibration.synthetic import arc_rig, board_poses, observe, warp_board  # noqa: E402
 
 CHARUCO = CharucoSpec(11, 8, 0.105, 0.078, "DICT_5X5_100")  # A0 size
@@ -96,12 +102,58 @@ def time_solve(detections: DetectionSet, truth):
     }
 
 
+def session_accuracy(n_cameras: int, width: int, height: int) -> dict:
+    """Errors against the truth of a session's calibration, from all stations and from its first
+    parts (a capture with fewer --views), with the time per rendered and detected image."""
+    from rig.cameras.sim import sim_rig_config
+    from rig.config import parse_config
+    from simulator.calibration_session import CalibrationSession
+    from simulator.sensor import NOMINAL_EXPOSURE_S
+
+    session = CalibrationSession(parse_config(sim_rig_config(n_cameras=n_cameras, width=width, height=height)), CHARUCO)
+    detector = make_detector(CHARUCO)
+    corners: dict[str, dict] = {c: {} for c in session.cameras}
+    t0 = time.perf_counter()
+    for k in range(session.sets):
+        for c in session.cameras:
+            sensor = session.sensor(c)
+            found = detector(sensor.expose(session.scene_time(k), NOMINAL_EXPOSURE_S, sensor.frame_rng(k)))
+            if found is not None:
+                corners[c][f"{k:04d}"] = found
+    per_image_ms = (time.perf_counter() - t0) * 1000 / (session.sets * len(session.cameras))
+    out = {"cameras": n_cameras, "size": f"{width}x{height}", "stations": session.sets, "render_and_detect_ms_per_image": round(per_image_ms, 1),
+           "by_stations": {}}
+    for n in sorted({session.sets, (2 * session.sets) // 3, session.sets // 2, session.sets // 3}, reverse=True):
+        sub = {c: {v: x for v, x in per.items() if int(v) < n} for c, per in corners.items()}
+        det = DetectionSet({c: (width, height) for c in session.cameras}, sub, {c: n for c in session.cameras})
+        result = calibrate_rig(det, CHARUCO, Options(fix_k3=True))
+        out["by_stations"][n] = {"views_used": result.rig.meta["views_used"],
+                                 "worst_error": {k: round(v, 4) for k, v in errors_against_truth(result.rig, session.truth).worst.items()},
+                                 "warnings": result.rig.meta["report"]["warnings"]}
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=50, help="time steps (views) of the six-camera sequence")
     ap.add_argument("--synthetic", action="store_true", help="do not render: homography images and exact projections")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--session", action="store_true", help="the simulated calibration session `rig demo` uses (see above)")
+    ap.add_argument("--cameras", type=int, default=6, help="with --session: cameras in the rig (default 6)")
+    ap.add_argument("--size", default="640x360", help="with --session: image size (default 640x360, the demo's)")
     args = ap.parse_args()
+    if args.session:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+        res = session_accuracy(args.cameras, w, h)
+        if args.json:
+            print(json.dumps(res))
+            return 0
+        print(f"session: {res['cameras']} cameras at {res['size']}, {res['stations']} stations, "
+              f"{res['render_and_detect_ms_per_image']} ms per image rendered and detected")
+        for n, r in res["by_stations"].items():
+            print(f"  first {n} stations: {describe(r['worst_error'])}; views used {r['views_used']}"
+                  + (f"; {len(r['warnings'])} warnings" if r["warnings"] else ""))
+        return 0
 
     results = {}
     seq = None if args.synthetic else simulated_sequence(args.views)

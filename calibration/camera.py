@@ -274,6 +274,8 @@ class RigCalibration:
             text = path.read_text()
         except FileNotFoundError:
             raise CalibrationError(f"{path}: no such calibration file") from None
+        except UnicodeDecodeError:
+            raise CalibrationError(f"{path}: not a calibration file (not JSON text)") from None
         except OSError as exc:
             raise CalibrationError(f"{path}: cannot read ({exc.strerror})") from None
         try:

@@ -14,10 +14,12 @@ import cv2
 import numpy as np
 
 from calibration.camera import CalibrationError, CameraModel, RigCalibration
+from common.files import atomic_path, atomic_write_bytes
 from calibration.geometry import rotation_vector
 from calibration.report import rectification
 
 FORMATS = ("opencv", "easymocap", "anipose", "nerfstudio", "colmap")
+IMAGE_FORMATS = ("nerfstudio", "colmap")  # formats that point at one image per camera (images/NAME.png)
 
 
 def stereo_pair(rig: RigCalibration) -> tuple[CameraModel, CameraModel]:
@@ -35,7 +37,9 @@ def _fs_write(path: Path, entries: list[tuple[str, object]]) -> None:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
         for key, value in entries:
-            if isinstance(value, (list, tuple)) and value and isinstance(value[0], str):
+            if isinstance(value, (int, np.integer)):
+                fs.write(key, int(value))  # a plain integer node (EasyMocap reads H_ and W_ as such)
+            elif isinstance(value, (list, tuple)) and value and isinstance(value[0], str):
                 fs.startWriteStruct(key, cv2.FileNode_SEQ)
                 for s in value:
                     fs.write("", s)
@@ -54,7 +58,7 @@ def rectification_maps(left: CameraModel, right: CameraModel, alpha: float | Non
     return {"left_map_x": lx, "left_map_y": ly, "right_map_x": rx, "right_map_y": ry, **{k: rect[k] for k in ("R1", "R2", "P1", "P2", "Q")}}
 
 
-def export_opencv(rig: RigCalibration, out: Path) -> list[Path]:
+def export_opencv(rig: RigCalibration, out: Path, images=None) -> list[Path]:
     """intrinsics.yml (M1 D1 M2 D2), extrinsics.yml (R T R1 R2 P1 P2 Q; right-from-left) and the
     rectification maps of the stereo pair (rectification_maps.npz)."""
     left, right = stereo_pair(rig)
@@ -69,13 +73,14 @@ def export_opencv(rig: RigCalibration, out: Path) -> list[Path]:
     return [intr, extr, maps]
 
 
-def export_easymocap(rig: RigCalibration, out: Path) -> list[Path]:
-    """EasyMocap intri.yml (K_NAME, dist_NAME) and extri.yml (R_NAME Rodrigues, Rot_NAME, T_NAME)."""
+def export_easymocap(rig: RigCalibration, out: Path, images=None) -> list[Path]:
+    """EasyMocap intri.yml (K_NAME, dist_NAME, and the image size H_NAME W_NAME, integers, as
+    EasyMocap's read_camera reads them) and extri.yml (R_NAME Rodrigues, Rot_NAME, T_NAME)."""
     intr = out / "intri.yml"
     extr = out / "extri.yml"
     names = rig.names
     _fs_write(intr, [("names", names)] + [e for c in rig.cameras for e in (
-        (f"K_{c.name}", c.K), (f"dist_{c.name}", _dist5(c).reshape(1, 5)))])
+        (f"K_{c.name}", c.K), (f"dist_{c.name}", _dist5(c).reshape(1, 5)), (f"H_{c.name}", int(c.height)), (f"W_{c.name}", int(c.width)))])
     _fs_write(extr, [("names", names)] + [e for c in rig.cameras for e in (
         (f"R_{c.name}", rotation_vector(c.R).reshape(3, 1)), (f"Rot_{c.name}", c.R), (f"T_{c.name}", c.t.reshape(3, 1)))])
     return [intr, extr]
@@ -91,7 +96,7 @@ def _toml_list(values) -> str:
     return "[" + ", ".join(_toml_list(v) if isinstance(v, (list, tuple, np.ndarray)) else repr(float(v)) for v in values) + "]"
 
 
-def export_anipose(rig: RigCalibration, out: Path) -> list[Path]:
+def export_anipose(rig: RigCalibration, out: Path, images=None) -> list[Path]:
     """aniposelib CameraGroup TOML: [cam_N] name size matrix distortions rotation (Rodrigues) translation."""
     path = out / "calibration.toml"
     lines = []
@@ -113,11 +118,68 @@ def export_anipose(rig: RigCalibration, out: Path) -> list[Path]:
     return [path]
 
 
-def export_nerfstudio(rig: RigCalibration, out: Path) -> list[Path]:
-    """nerfstudio transforms.json, one frame per camera (images/NAME.png), per-frame OPENCV intrinsics.
+def write_images(out: Path, rig: RigCalibration, images: dict[str, np.ndarray]) -> list[Path]:
+    """out/images/NAME.png for every camera: the image it points at, at the calibrated size."""
+    files = []
+    for c in rig.cameras:
+        img = np.asarray(images[c.name])
+        if img.dtype == np.uint16:
+            img = (img >> 8).astype(np.uint8)
+        if img.ndim == 3 and img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+        path = out / "images" / f"{c.name}.png"
+        with atomic_path(path, make_parents=True) as tmp:
+            if not cv2.imwrite(str(tmp), img):
+                raise OSError(f"{path}: could not write the image")
+        files.append(path)
+    return files
+
+
+def check_images(rig: RigCalibration, images: dict[str, np.ndarray], source: str) -> None:
+    """Every calibrated camera has an image at its calibrated size (the intrinsics are per pixel)."""
+    for c in rig.cameras:
+        if c.name not in images:
+            raise CalibrationError(f"{source}: no image of camera '{c.name}'")
+        h, w = np.asarray(images[c.name]).shape[:2]
+        if (w, h) != (c.width, c.height):
+            raise CalibrationError(f"{source}: camera '{c.name}' images are {w}x{h} but it was calibrated at {c.width}x{c.height}")
+
+
+def images_from_views(rig: RigCalibration, folder: str | Path, view: str | None = None) -> dict[str, np.ndarray]:
+    """One calibration view (DIR/CAMNAME/VIEW.png, as `rig calibrate capture` writes): `view`, or the
+    first that every calibrated camera has. RGB (or grey) pixels per camera."""
+    from calibration.images import find_images
+
+    found = find_images(folder)
+    missing = [n for n in rig.names if n not in found.paths]
+    if missing:
+        raise CalibrationError(f"{folder}: no images of camera {', '.join(repr(m) for m in missing)}")
+    common = [v for v in found.views if all(v in found.paths[n] for n in rig.names)]
+    if view is not None and view not in common:
+        raise CalibrationError(f"{folder}: no view {view!r} that every camera has (views: {', '.join(common[:8]) or 'none'}"
+                               f"{' ...' if len(common) > 8 else ''})")
+    if not common:
+        raise CalibrationError(f"{folder}: no view that every camera ({', '.join(rig.names)}) has")
+    chosen = view or common[0]
+    out = {}
+    for n in rig.names:
+        path = found.paths[n][chosen]
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise CalibrationError(f"{path}: cannot read this image (corrupt or not an image)")
+        out[n] = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img
+    return out
+
+
+def export_nerfstudio(rig: RigCalibration, out: Path, images: dict[str, np.ndarray] | None = None) -> list[Path]:
+    """nerfstudio transforms.json, one frame per camera, per-frame OPENCV intrinsics, and the images
+    it points at (images/NAME.png), so that `ns-train` can start from the folder.
 
     transform_matrix is camera-to-world in nerfstudio's (OpenGL) camera axes: x right, y up, z backwards.
     """
+    if images is None:
+        raise CalibrationError("a nerfstudio export needs one image per camera (a take's set or a calibration view)")
+    check_images(rig, images, "nerfstudio export")
     path = out / "transforms.json"
     frames = []
     flip = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -133,8 +195,9 @@ def export_nerfstudio(rig: RigCalibration, out: Path) -> list[Path]:
             "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx + 0.5, "cy": c.cy + 0.5, "w": c.width, "h": c.height,
             "k1": d[0], "k2": d[1], "p1": d[2], "p2": d[3], "k3": d[4],
         })
-    path.write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=2) + "\n")
-    return [path]
+    written = write_images(out, rig, images)
+    atomic_write_bytes(path, (json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=2) + "\n").encode())
+    return [path, *written]
 
 
 def _quaternion(R: np.ndarray) -> np.ndarray:
@@ -157,9 +220,12 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
-def export_colmap(rig: RigCalibration, out: Path) -> list[Path]:
+def export_colmap(rig: RigCalibration, out: Path, images: dict[str, np.ndarray] | None = None) -> list[Path]:
     """COLMAP text model: cameras.txt (FULL_OPENCV), images.txt (world-to-camera quaternion, NAME.png),
-    and an empty points3D.txt so COLMAP reads the folder as a model."""
+    and an empty points3D.txt so COLMAP reads the folder as a model; with `images`, also the images
+    it names (images/NAME.png, COLMAP's --image_path)."""
+    if images is not None:
+        check_images(rig, images, "colmap export")
     cams = out / "cameras.txt"
     imgs = out / "images.txt"
     pts = out / "points3D.txt"
@@ -177,10 +243,10 @@ def export_colmap(rig: RigCalibration, out: Path) -> list[Path]:
     cams.write_text("\n".join(clines) + "\n")
     imgs.write_text("\n".join(ilines) + "\n")
     pts.write_text("# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n# Number of points: 0\n")
-    return [cams, imgs, pts]
+    return [cams, imgs, pts] + (write_images(out, rig, images) if images is not None else [])
 
 
-EXPORTERS: dict[str, Callable[[RigCalibration, Path], list[Path]]] = {
+EXPORTERS: dict[str, Callable[..., list[Path]]] = {
     "opencv": export_opencv,
     "easymocap": export_easymocap,
     "anipose": export_anipose,
@@ -189,12 +255,13 @@ EXPORTERS: dict[str, Callable[[RigCalibration, Path], list[Path]]] = {
 }
 
 
-def export(rig: RigCalibration, fmt: str, out: str | Path) -> list[Path]:
-    """Write `rig` in format `fmt` into folder `out`; returns the files written."""
+def export(rig: RigCalibration, fmt: str, out: str | Path, images: dict[str, np.ndarray] | None = None) -> list[Path]:
+    """Write `rig` in format `fmt` into folder `out`; returns the files written. `images` (camera name
+    -> pixels at the calibrated size) are the images a nerfstudio (required) or COLMAP export points at."""
     if fmt not in EXPORTERS:
         raise CalibrationError(f"unknown export format {fmt!r} (allowed: {', '.join(FORMATS)})")
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CalibrationError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
-    return EXPORTERS[fmt](rig, out)
+    return EXPORTERS[fmt](rig, out, images=images)

@@ -11,6 +11,7 @@ import numpy as np
 
 from calibration.boards import BoardSpec
 from calibration.camera import CalibrationError
+from common.files import atomic_write_bytes
 
 MAX_PIXELS = 400_000_000
 
@@ -44,8 +45,7 @@ def write_board(board: BoardSpec, path: str | Path, dpi: float = 300.0) -> dict:
     ok, buf = cv2.imencode(".png", img)
     if not ok:
         raise CalibrationError(f"{path}: could not encode the board image")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(_png_with_dpi(buf.tobytes(), dpi))
+    atomic_write_bytes(path, _png_with_dpi(buf.tobytes(), dpi), make_parents=True)
     h, w = img.shape[:2]
     return {
         "path": str(path),

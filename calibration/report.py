@@ -173,6 +173,7 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "rejected": rejected_by_cam.get(name, 0),
             "corners_rejected": result.corners_rejected.get(name, 0),
             "coverage": cov,
+            "held": list(result.intrinsics[name].held),  # distortion terms held at 0
         }
         if views_used[name] < MIN_GOOD_VIEWS:
             warnings.append(f"camera '{name}': only {views_used[name]} views used; {MIN_GOOD_VIEWS} or more are needed to trust its intrinsics")
@@ -184,7 +185,7 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             )
         if rms_px[name] is not None and rms_px[name] > MAX_GOOD_RMS_PX:
             warnings.append(f"camera '{name}': reprojection RMS {rms_px[name]:.2f} px is high (above {MAX_GOOD_RMS_PX} px)")
-        if result.intrinsics[name].fix_k3:
+        if result.intrinsics[name].k3_held_for_views:
             warnings.append(f"camera '{name}': too few views to estimate k3; it was held at 0")
         std_of = per_camera[name]["std"]
         unknown = [k for k, v in std_of.items() if v is None]
@@ -305,6 +306,11 @@ def format_report(calib: RigCalibration) -> str:
     for name, c in rep["cameras"].items():
         std = c.get("std") or {}
         lines.append(f"  {name:<10} " + "  ".join(f"{k} {_std(std.get(k))}" for k in ("fx", "fy", "cx", "cy")))
+    held = {name: c.get("held") for name, c in rep["cameras"].items() if c.get("held")}
+    if held:
+        terms = sorted({t for h in held.values() for t in h}, key=["k3", "p1", "p2"].index)
+        who = "every camera" if len(held) == len(rep["cameras"]) else ", ".join(held)
+        lines.append(f"held at 0 (not fitted): {' '.join(terms)} ({who})")
     st = rep.get("stereo")
     if st:
         lines.append("")

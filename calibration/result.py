@@ -37,6 +37,8 @@ class CameraIntrinsics:
     view_rms: dict[str, float]
     poses: dict[str, tuple[np.ndarray, np.ndarray]]  # view -> board-to-camera (R, t)
     fix_k3: bool
+    held: tuple[str, ...] = ()  # distortion terms held at 0 in every fit ("k3", "p1", "p2")
+    k3_held_for_views: bool = False  # k3 held because the camera had too few views (not by choice)
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """Choosing calibration views while the board is shown to the rig: keep a view only when it adds
 something: a part of some camera's image the board has not covered yet, or a board pose unlike every
-view kept so far (a different place, size, or tilt in the image)."""
+view kept so far (a different place, size, or tilt in the image), whether one camera sees it or
+several."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -76,10 +77,10 @@ class ViewSelector:
         new_cells = {n: int((self._cells(n, c) & ~self.cams[n].seen).sum()) for n, c in seen.items()}
         novel = [n for n, c in seen.items() if self._is_novel(n, c)]
         adds_cells = [n for n, k in new_cells.items() if k > 0]
-        if len(seen) >= 2 and (adds_cells or novel):
+        # A view one camera sees alone still pins down that camera's lens (a new place in its image,
+        # or a new tilt, which separates focal length from distance); it is kept like a shared one.
+        if adds_cells or novel:
             reason = "new coverage in " + ", ".join(adds_cells) if adds_cells else "new board pose in " + ", ".join(novel)
-        elif len(seen) == 1 and adds_cells:
-            reason = f"new coverage in {adds_cells[0]}"
         else:
             return Verdict(False, "nothing new", sorted(seen), {})
         for n, c in seen.items():

@@ -43,6 +43,7 @@ class Options:
     outlier_px: float = 1.0  # an observation is an outlier above max(outlier_px, outlier_factor * median RMS)
     outlier_factor: float = 5.0
     fix_k3: bool | None = None  # None: fix k3 for cameras with fewer than MIN_VIEWS_FOR_K3 views
+    fix_tangential: bool = False  # hold p1 p2 at 0 (lenses known to be centred on the sensor)
     max_rounds: int = 5  # bundle adjustment + rejection rounds
     reweight: bool = True  # weight each camera view by its measured corner noise
 
@@ -91,7 +92,8 @@ def calibrate_intrinsics(
             f"camera '{camera}': the board was found in only {len(keep)} image(s); at least {MIN_VIEWS_PER_CAMERA} are needed"
         )
     fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else len(keep) < MIN_VIEWS_FOR_K3
-    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+    k3_held_for_views = fix_k3 and opts.fix_k3 is None
+    flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if opts.fix_tangential else 0)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     for _ in range(opts.max_rounds):
         names = list(keep)
@@ -117,7 +119,8 @@ def calibrate_intrinsics(
             )
             del keep[v]
     poses = {v: (cv2.Rodrigues(rv)[0], tv.reshape(3)) for v, rv, tv in zip(names, rvecs, tvecs)}
-    return CameraIntrinsics(K, dist.reshape(-1)[:5], float(rms), view_rms, poses, fix_k3)
+    held = (("k3",) if fix_k3 else ()) + (("p1", "p2") if opts.fix_tangential else ())
+    return CameraIntrinsics(K, dist.reshape(-1)[:5], float(rms), view_rms, poses, fix_k3, held, k3_held_for_views)
 
 
 def _common(a: Corners, b: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -243,7 +246,8 @@ def calibrate_rig(
     cams0 = np.array([np.concatenate([rotation_vector(poses[c][0]), poses[c][1]]) for c in order])
     fixed_intr = np.zeros((len(order), bundle.N_INTR), dtype=bool)
     for ci, c in enumerate(order):
-        fixed_intr[ci, 8] = intr[c].fix_k3
+        for term in intr[c].held:
+            fixed_intr[ci, bundle.INTRINSIC_NAMES.index(term)] = True
 
     active = np.ones(len(uv), dtype=bool)
     corners_rejected = np.zeros(len(order), dtype=int)

@@ -8,6 +8,8 @@
 - rig.py: virtual_rig(n, width, height) - ground-truth calibration of the arc rig.
 - sensor.py: SensorModel (exposure, motion blur, gain, noise, colour filter, timing, drops, loop
   replay), SimRig / camera_source for the sim:// camera backend.
+- calibration_session.py: CalibrationSession - the rig's scene during `rig calibrate capture`: the
+  user's board held at stations planned to cover every camera's image, no people; time counted in views.
 - snapshot.py: write_snapshot (behind `rig sim snapshot`).
 - options.py: the option tables of the sim config; trigger_board.py: the trigger-board emulator;
   serial_link.py: the emulated board's pty / socket port and its queue of outgoing lines.

@@ -74,6 +74,8 @@ def code_version() -> str:
 def scene_fingerprint(scene) -> Optional[dict[str, Any]]:
     """What a Scene is built from (its content is a pure function of this), or None for an object
     this module does not know how to describe (then its loop is not cached)."""
+    if getattr(scene, "board_path", None) is not None:
+        return None  # a board moved by a function (a calibration session) is not described by these fields
     try:
         board = scene.board
         return {"seed": int(scene.seed), "name": str(scene.name), "motion": str(scene.motion),

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
-from typing import Union
+from typing import Callable, Optional, Union
 
 import numpy as np
 
@@ -73,11 +73,14 @@ class Scene:
 
     Scene(seed=0, people=2, motion="mixed", board=None) -- `motion` is one of walk, wave, dance,
     jump, still, or mixed (each person its own); `board` a calibration.boards spec, or "charuco" /
-    "chessboard" for the default boards; `name` "studio" (with props) or "empty".
+    "chessboard" for the default boards; `name` "studio" (with props) or "empty". `board_path`, when
+    given, replaces the board's loop through the volume: a function of time giving the board-to-world
+    pose (R, t), as `simulator.calibration_session` makes for a calibration session.
     """
 
     def __init__(self, seed: int = 0, people: int = 2, motion: str = "mixed",
-                 board: Union[BoardSpec, str, None] = None, name: str = "studio", board_period: float = 20.0):
+                 board: Union[BoardSpec, str, None] = None, name: str = "studio", board_period: float = 20.0,
+                 board_path: Optional[Callable[[float], tuple[np.ndarray, np.ndarray]]] = None):
         if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
             raise SimulatorError(f"seed must be an integer >= 0, got {seed!r}")
         if name not in SCENES:
@@ -97,6 +100,7 @@ class Scene:
         self.motion = motion
         self.board = board
         self.board_period = float(board_period)
+        self.board_path = board_path
         self.room = Room("room", "", False, np.array(ROOM_LO), np.array(ROOM_HI),
                          ("wall_xneg", "wall_xpos", "floor", "ceiling", "wall_zneg", "wall_zpos"))
         atlas = AtlasBuilder()
@@ -223,6 +227,8 @@ class Scene:
         if self.board is None:
             raise SimulatorError("this scene has no calibration board (set board = \"charuco\" or \"chessboard\")")
         t = check_time(t)
+        if self.board_path is not None:
+            return self.board_path(t)
         u = 2 * math.pi * (t % self.board_period) / self.board_period
         centre = np.array([0.75 * math.sin(u), 1.35 + 0.32 * math.sin(2 * u + 0.6), 0.45 * math.sin(3 * u + 1.1)])
         facing = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # columns: board x, y, z in the world

@@ -98,9 +98,14 @@ class SimCamera(Camera):
         self._frame_counter = 0
         self._start_ns = 0
         self._last_exposure_end_ns = 0
+        self._session = getattr(settings, "calibration_session", None)
 
     def _scene_source(self, settings: CameraConfig, seed: int) -> ImageSource:
         """The simulated scene seen by this camera of its rig, or a plain test pattern for a lone camera."""
+        session = getattr(settings, "calibration_session", None)
+        if session is not None:  # see calibration_session(): the board at its stations, no people
+            self.sensor = session.sensor(settings.name)
+            return self.sensor.image_source()
         rig = getattr(settings, "rig", None)
         if rig is None:
             return synthetic_source(settings.width, settings.height, seed)
@@ -245,6 +250,10 @@ class SimCamera(Camera):
         if self.opts["drop_rate"] > 0 and self.rng.random() < self.opts["drop_rate"]:
             return  # lost between sensor and host: the id gap tells the host
         t = (expose_ns - SIM_EPOCH_NS) / 1e9
+        if self._session is not None:
+            # A calibration session counts time in views: exposure k shows station k, whatever the
+            # host clock says (every camera of the rig is triggered once per synchronised view).
+            t = self._session.scene_time(frame_id - 1)
         rgb = self.source(t, self.exposure_s, self.rng)
         s = self.settings
         raw = from_rgb(rgb, s.pixel_format)  # what the sensor sends, decoded as a real backend decodes it
@@ -282,6 +291,19 @@ def emulated_trigger_board(uri: str, options: dict, outputs: list[Callable[[int,
     return emulator
 
 
+# The calibration board that suits a simulated rig: A0 size (1.155 x 0.84 m), what a rig whose
+# cameras stand 3.6 m from the volume needs (docs/calibration.md, "Boards").
+SIM_RIG_BOARD = {"type": "charuco", "squares_x": 11, "squares_y": 8, "square_size": 0.105, "marker_size": 0.078,
+                 "dictionary": "DICT_5X5_100"}
+
+
+def board_toml(board: dict) -> str:
+    """A board file (`--board`) for `board`."""
+    import json
+
+    return "".join(f"{k} = {json.dumps(v)}\n" for k, v in board.items())
+
+
 def sim_rig_config(n_cameras: int = 2, width: int = 640, height: int = 360, fps: float = 30.0,
                    trigger: str = "hardware", pixel_format: str = "RGB8") -> dict[str, Any]:
     """The configuration of a simulated rig, as `rig config init --sim` and `rig demo` write it: cameras named as the virtual rig names them, fired by the emulated trigger board."""
@@ -309,6 +331,38 @@ def sim_rig_config(n_cameras: int = 2, width: int = 640, height: int = 360, fps:
 
 # ---- the simulator as the rest of rig sees it: everything rig needs of the simulator goes through
 # these functions, so that the simulator stays out of the real-camera path (tests/test_layering.py).
+
+def calibration_session(settings: list, board) -> Optional[Any]:
+    """Switch the sim:// cameras among `settings` to a calibration session, for `rig calibrate
+    capture`: the simulated scene becomes `board` (the board file the user gave) held by someone at
+    a series of stations planned to cover every camera's image and to be seen by several cameras at
+    once, with nobody else in the scene, whatever the config's `[sim]` table says about people, a
+    board or a pre-rendered loop. The cameras are fired by software trigger, and the k-th
+    synchronised view shows the k-th station, so the capture depends neither on start-up time nor on
+    how fast the host renders.
+
+    `settings` are the CameraConfig copies the capture opens, each with `.rig` (the whole config);
+    they are changed in place. Returns the session (`.sets`: the views it offers, `.describe()`,
+    `.truth`: the cameras' exact calibration), or None when no camera is simulated.
+    """
+    sims = [s for s in settings if s.scheme == SCHEME]
+    if not sims:
+        return None
+    rig = getattr(sims[0], "rig", None)
+    if rig is None:
+        raise ConfigError("a simulated calibration session needs the rig configuration of its cameras")
+    from simulator.calibration_session import CalibrationSession
+    from simulator.errors import SimulatorError
+
+    try:
+        session = CalibrationSession(rig, board)
+    except SimulatorError as exc:
+        raise ConfigError(str(exc)) from None
+    for s in sims:
+        s.calibration_session = session
+        s.trigger = "software"
+    return session
+
 
 def check_options(table: dict, kind: str) -> None:
     """Validate a `[sim]` table of a rig config (`kind`: "rig", "camera" or "trigger"); ValueError

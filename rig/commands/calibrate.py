@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import shlex
 from pathlib import Path
 
 EXPORT_FORMATS = ("opencv", "easymocap", "anipose", "nerfstudio", "colmap")
@@ -30,6 +32,12 @@ def register(subparsers) -> None:
     r.add_argument("--left", metavar="NAME", help="camera at the origin (default: 'left', else the first)")
     r.add_argument("--right", metavar="NAME", help="other camera of the stereo pair (default: 'right', else the last)")
     r.add_argument("--outlier-px", type=float, default=1.0, help="reject views whose RMS exceeds max(this, 5 x median) (default 1.0)")
+    r.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto",
+                   help="third radial term: hold it at 0 (ordinary lenses, under ~90 degrees across: it is poorly observable "
+                        "and fitted values are noise), fit it (wide-angle lenses), or auto: fit it from 10 views per camera (default)")
+    r.add_argument("--tangential", choices=("fit", "hold"), default="fit",
+                   help="tangential terms p1 p2: fit them (default) or hold them at 0 (lenses known to be centred)")
+    r.add_argument("--force", action="store_true", help="replace an existing calibration file")
     r.add_argument("--json", action="store_true", help="print one JSON object with the results")
     r.set_defaults(func=cmd_run)
 
@@ -52,10 +60,18 @@ def register(subparsers) -> None:
     rp.set_defaults(func=cmd_report)
 
     e = sub.add_parser("export", help="write a calibration in another tool's format",
-                       description="Export to OpenCV YAML (+ rectification maps), EasyMocap, aniposelib TOML, nerfstudio transforms.json or COLMAP text.")
+                       description="Export to OpenCV YAML (+ rectification maps), EasyMocap, aniposelib TOML, nerfstudio transforms.json "
+                                   "or COLMAP text. nerfstudio (and COLMAP, when a source is named) also get OUT/images/CAMNAME.png, one "
+                                   "image per camera at one instant: a set of a recorded take (--take), or a calibration view (--images; "
+                                   "by default the views the calibration was made from).")
     e.add_argument("calibration", metavar="calib.json")
     e.add_argument("--format", required=True, choices=EXPORT_FORMATS)
     e.add_argument("-o", "--output", required=True, metavar="OUT", help="folder to write into")
+    src = e.add_mutually_exclusive_group()
+    src.add_argument("--take", metavar="TAKE", help="images from this recorded take (`rig record -o TAKE`)")
+    src.add_argument("--images", metavar="DIR", help="images from these calibration views (DIR/CAMNAME/NNNN.png)")
+    e.add_argument("--set", type=int, metavar="N", help="with --take: the set to use (default: the first set every camera has a frame in)")
+    e.add_argument("--view", metavar="NNNN", help="with --images: the view to use (default: the first view every camera has)")
     e.add_argument("--json", action="store_true", help="print one JSON object with the files written")
     e.set_defaults(func=cmd_export)
 
@@ -70,9 +86,14 @@ def cmd_board(args: argparse.Namespace) -> int:
     from calibration.boards import load_board
     from calibration.printable import write_board
     from rig.commands._output import emit_json
+    from rig.commands._paths import output_file
 
     board = load_board(args.board)
-    info = write_board(board, args.output, args.dpi)
+    output_file(args.output)
+    try:
+        info = write_board(board, args.output, args.dpi)
+    except OSError as exc:
+        raise _write_failed(args.output, exc, "the board image") from None
     if args.json:
         emit_json(info)
     else:
@@ -81,28 +102,44 @@ def cmd_board(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_failed(path, exc: OSError, what: str):
+    from rig.errors import StorageError
+
+    return StorageError(f"{path}: could not write {what} ({exc.strerror or exc})")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from calibration.boards import load_board
     from calibration.images import detect_images, find_images
     from calibration.report import format_report
     from calibration.solve import Options, calibrate_rig
     from rig.commands._output import emit_json
+    from rig.commands._paths import output_file
+    from rig.errors import ConfigError, StorageError
 
+    if not args.outlier_px > 0:
+        raise ConfigError(f"--outlier-px must be positive, got {args.outlier_px}")
     board = load_board(args.board)
     images = find_images(args.images)
+    # Where the result goes is checked before the detection and the solve, which take minutes.
+    if Path(args.output).is_file() and not args.force:
+        raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
+    output = output_file(args.output)
     status = _status()
     detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
     status.done()
-    opts = Options(left=args.left or images.roles.get("left"), right=args.right or images.roles.get("right"), outlier_px=args.outlier_px)
+    opts = Options(left=args.left or images.roles.get("left"), right=args.right or images.roles.get("right"), outlier_px=args.outlier_px,
+                   fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential=args.tangential == "hold")
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
     rig = result.rig
-    rig.meta["images"] = str(Path(args.images))
-    rig.save(args.output)
+    rig.meta["images"] = str(Path(args.images).absolute())
+    written, why = save_keeping(rig, output)
     meta = rig.meta
     if args.json:
         emit_json({
-            "output": str(args.output),
+            "output": str(written) if written else None,
+            "requested_output": str(args.output),
             "cameras": rig.names,
             "views_used": meta["views_used"],
             "views_found": {c: len(detections.corners[c]) for c in rig.names},
@@ -115,11 +152,42 @@ def cmd_run(args: argparse.Namespace) -> int:
             "intrinsics": {c.name: {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "dist": c.dist.tolist()} for c in rig.cameras},
             "rejected": meta["rejected"],
             "warnings": meta["report"]["warnings"],
+            **({"calibration": rig.to_dict()} if written is None else {}),
         })
     else:
         print(format_report(rig))
-        print(f"\nwrote {args.output}")
+        if written == output:
+            print(f"\nwrote {output}")
+        elif written is None:
+            print(json.dumps(rig.to_dict(), indent=2))
+    if why is not None:
+        kept = f"the result is kept in {written}; move it where you want it" if written else \
+            "it could not be written anywhere either and was printed on stdout"
+        raise StorageError(f"{args.output}: could not write the calibration ({why}); {kept}")
     return 0
+
+
+def save_keeping(rig, output: Path) -> tuple[Path | None, str | None]:
+    """Write the calibration to `output`; a solve is never lost to a failed write (the disk filled up,
+    the folder went away during the solve): it is then kept beside as NAME.unsaved-TIME in the working
+    folder, else in the temporary folder. Returns (where it was written or None, why `output` failed
+    or None)."""
+    import tempfile
+    import time
+
+    try:
+        rig.save(output)
+        return output, None
+    except OSError as exc:
+        why = exc.strerror or str(exc)
+    name = f"{output.name}.unsaved-{time.strftime('%Y%m%d-%H%M%S')}"
+    for folder in (Path.cwd(), Path(tempfile.gettempdir())):
+        try:
+            rig.save(folder / name)
+            return folder / name, why
+        except OSError:
+            continue
+    return None, why
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -139,11 +207,24 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from calibration.camera import RigCalibration
-    from calibration.export import export
+    from calibration.export import IMAGE_FORMATS, export
     from rig.commands._output import emit_json
+    from rig.commands._paths import output_folder
+    from rig.errors import ConfigError
 
     rig = RigCalibration.load(args.calibration)
-    files = export(rig, args.format, args.output)
+    if (args.take or args.images) and args.format not in IMAGE_FORMATS:
+        raise ConfigError(f"--take and --images give the images of a {' or '.join(IMAGE_FORMATS)} export, not of {args.format}")
+    if args.set is not None and not args.take:
+        raise ConfigError("--set chooses a set of a take: give --take TAKE too")
+    if args.view is not None and args.take:
+        raise ConfigError("--view chooses a calibration view: use --set with --take")
+    out = output_folder(args.output)
+    images = _export_images(rig, args) if args.format in IMAGE_FORMATS else None
+    try:
+        files = export(rig, args.format, out, images=images)
+    except OSError as exc:
+        raise _write_failed(exc.filename or out, exc, f"the {args.format} export") from None
     if args.json:
         emit_json({"format": args.format, "files": [str(f) for f in files]})
     else:
@@ -152,30 +233,60 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export_images(rig, args: argparse.Namespace):
+    """One image per calibrated camera at one instant, for exports that point at images (None for
+    COLMAP when no source is named: its model names the images, the user brings them)."""
+    from calibration.export import images_from_views
+    from rig.errors import ConfigError
+
+    if args.take:
+        return _take_images(rig, Path(args.take), args.set)
+    folder = args.images or rig.meta.get("images")
+    if folder is None or not Path(folder).is_dir():
+        if args.format == "colmap":
+            return None
+        where = f" (the views it was made from, {folder}, are gone)" if folder else ""
+        raise ConfigError(f"{args.calibration}: a nerfstudio export needs one image per camera{where}: "
+                          "name a take (--take TAKE) or calibration views (--images DIR)")
+    return images_from_views(rig, folder, args.view)
+
+
+def _take_images(rig, take: Path, set_number):
+    """The frames of one set of a recorded take, every calibrated camera's, at their calibrated size."""
+    from rig.errors import ConfigError
+    from rig.storage.dataset import Sequence
+
+    seq = Sequence(take)
+    missing = [n for n in rig.names if n not in seq.camera_names]
+    if missing:
+        raise ConfigError(f"{take}: has no camera {', '.join(repr(m) for m in missing)} of the calibration (it has: {', '.join(seq.camera_names)})")
+    for sample in seq.samples(cameras=rig.names, with_depth=False):
+        if set_number is None or sample.set == set_number:
+            return {n: sample.images[n] for n in rig.names}
+    if set_number is None:
+        raise ConfigError(f"{take}: no set has a frame of every camera ({', '.join(rig.names)})")
+    raise ConfigError(f"{take}: no set {set_number} with a frame of every camera ({', '.join(rig.names)})")
+
+
 def cmd_capture(args: argparse.Namespace) -> int:
     """Pull synchronised frame sets from the rig, keep those that add coverage, write DIR/CAMNAME/NNNN.png."""
     import dataclasses
-    import json
-    import time
-
-    import cv2
 
     from calibration.boards import load_board
-    from calibration.detect import make_detector, to_gray
-    from calibration.selection import ViewSelector
-    from rig.cameras import open_camera
-    from rig.commands._output import emit_json
+    from rig.commands._paths import new_output_folder
     from rig.config import load_config
-    from rig.errors import ConfigError, StorageError
+    from rig.errors import ConfigError
 
-    cfg = load_config(args.config)
+    # The calibration the config names may not exist yet: this is how it gets made.
+    cfg = load_config(args.config, check_calibration=False)
     board = load_board(args.board)
-    if args.views < 1 or args.max_frames < 1:
-        raise ConfigError("--views and --max-frames must be at least 1")
-    out = Path(args.output)
-    if out.exists() and any(out.iterdir()):
-        raise ConfigError(f"{out}: folder is not empty; views are numbered from 0000, choose a new folder")
-    detector = make_detector(board)
+    for name, value in (("--views", args.views), ("--max-frames", args.max_frames)):
+        if value < 1:
+            raise ConfigError(f"{name} must be at least 1, got {value}")
+    for name, value in (("--interval", args.interval), ("--timeout", args.timeout)):
+        if not (value >= 0 and value < float("inf")):
+            raise ConfigError(f"{name} must be a number of seconds >= 0, got {value}")
+    out = new_output_folder(args.output)
     # Calibration views are stills: cameras that take triggers are fired by software so that every
     # camera exposes the same instant without the trigger board; free-running ones are paired by time.
     settings = []
@@ -184,36 +295,89 @@ def cmd_capture(args: argparse.Namespace) -> int:
         if hasattr(c, "rig"):
             s.rig = c.rig  # the whole rig, which simulated cameras need to show the shared scene
         settings.append(s)
+    # Simulated cameras have nobody to carry the board: the scene becomes a calibration session
+    # that shows the board given here at stations through the volume.
+    session = None
+    if any(s.scheme == "sim" for s in settings):
+        from rig.cameras.sim import calibration_session
+
+        session = calibration_session(settings, board)
+    limit = args.max_frames if session is None else min(args.max_frames, session.sets)
+    if session is not None and not args.json:
+        print(session.describe(), flush=True)
+    roles = {c.role: c.name for c in cfg.cameras if c.role in ("left", "right")}
+    summary = _capture_views(settings, board, out, roles, args.views, limit, args.interval, args.timeout)
+    _check_capture(summary, args.board, [s.name for s in settings])
+    if args.json:
+        from rig.commands._output import emit_json
+
+        emit_json(summary)
+    else:
+        for k in summary["kept"]:
+            print(f"{k['view']}: {k['reason']} (board seen by {', '.join(k['cameras'])})")
+        cov = ", ".join(f"{n} {v * 100:.0f}%" for n, v in summary["coverage"].items())
+        print(f"kept {summary['views_kept']} of {summary['views_looked_at']} views in {out}; coverage {cov}")
+        print(f"next: rig calibrate run --images {shlex.quote(str(out))} --board {shlex.quote(str(args.board))} -o {_free_name('calib.json')}")
+    return 0
+
+
+def _free_name(name: str) -> str:
+    """`name`, or name-2, name-3, ... : the `next:` line must not name a calibration that exists
+    (`rig calibrate run` refuses to replace one without --force)."""
+    stem, suffix = Path(name).stem, Path(name).suffix
+    k = 1
+    while Path(name).exists():
+        k += 1
+        name = f"{stem}-{k}{suffix}"
+    return name
+
+
+def _capture_views(settings, board, out: Path, roles: dict, views: int, limit: int, interval: float, timeout: float) -> dict:
+    import json
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    from calibration.detect import make_detector, to_gray
+    from calibration.selection import ViewSelector
+    from rig.cameras import open_camera
+    from rig.errors import StorageError
+
+    detectors = {s.name: make_detector(board) for s in settings}  # one each: detection runs in parallel
+    selector = ViewSelector({s.name: (s.width, s.height) for s in settings})
     cameras = []
     status = _status()
     kept: list[dict] = []
+    sightings = {s.name: 0 for s in settings}
     looked = 0
     try:
-        roles = {c.role: c.name for c in cfg.cameras if c.role in ("left", "right")}
         for s in settings:
             cameras.append(open_camera(s))
         for cam in cameras:
             cam.start()
-        selector = ViewSelector({s.name: (s.width, s.height) for s in settings})
-        while looked < args.max_frames and len(kept) < args.views:
-            images = _grab_set(cameras, args.timeout)
-            looked += 1
-            detections = {name: detector(img) for name, img in images.items()}
-            verdict = selector.consider(detections)
-            if verdict.keep:
-                index = len(kept)
-                if index == 0 and roles:  # tells `rig calibrate run` which cameras are the stereo pair
-                    out.mkdir(parents=True, exist_ok=True)
-                    (out / "roles.json").write_text(json.dumps(roles) + "\n")
-                for name, img in images.items():
-                    path = out / name / f"{index:04d}.png"
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    if not cv2.imwrite(str(path), _to_bgr(img, to_gray)):
-                        raise StorageError(f"{path}: could not write the image (disk full or no permission?)")
-                kept.append({"view": f"{index:04d}", "cameras": verdict.cameras, "reason": verdict.reason})
-            status.update(f"looked at {looked} views, kept {len(kept)}/{args.views}")
-            if args.interval > 0:
-                time.sleep(args.interval)
+        with ThreadPoolExecutor(max_workers=len(cameras)) as pool:
+            while looked < limit and len(kept) < views:
+                images = _grab_set(cameras, timeout)
+                looked += 1
+                found = dict(zip(images, pool.map(lambda kv: detectors[kv[0]](kv[1]), images.items())))
+                for name, corners in found.items():
+                    sightings[name] += corners is not None
+                verdict = selector.consider(found)
+                if verdict.keep:
+                    index = len(kept)
+                    if index == 0 and roles:  # tells `rig calibrate run` which cameras are the stereo pair
+                        out.mkdir(parents=True, exist_ok=True)
+                        (out / "roles.json").write_text(json.dumps(roles) + "\n")
+                    for name, img in images.items():
+                        path = out / name / f"{index:04d}.png"
+                        path.parent.mkdir(parents=True, exist_ok=True)
+                        if not cv2.imwrite(str(path), _to_bgr(img, to_gray)):
+                            raise StorageError(f"{path}: could not write the image (disk full or no permission?)")
+                    kept.append({"view": f"{index:04d}", "cameras": verdict.cameras, "reason": verdict.reason})
+                status.update(f"looked at {looked}/{limit} frame sets, kept {len(kept)} views (stops at {views})")
+                if interval > 0:
+                    time.sleep(interval)
     finally:
         for cam in cameras:
             try:
@@ -221,17 +385,30 @@ def cmd_capture(args: argparse.Namespace) -> int:
                 cam.close()
             except Exception:  # closing must not hide the error that stopped the capture
                 pass
-    status.done()
-    summary = {"output": str(out), "views_kept": len(kept), "views_looked_at": looked, "coverage": selector.coverage(), "kept": kept}
-    if args.json:
-        emit_json(summary)
-    else:
-        for k in kept:
-            print(f"{k['view']}: {k['reason']} (board seen by {', '.join(k['cameras'])})")
-        cov = ", ".join(f"{n} {v * 100:.0f}%" for n, v in summary["coverage"].items())
-        print(f"kept {len(kept)} of {looked} views in {out}; coverage {cov}")
-        print(f"next: rig calibrate run --images {out} --board {args.board} -o calib.json")
-    return 0
+        status.done()
+    per_camera = {s.name: sum(1 for k in kept if s.name in k["cameras"]) for s in settings}
+    return {"output": str(out), "views_kept": len(kept), "views_looked_at": looked, "coverage": selector.coverage(),
+            "views_per_camera": per_camera, "board_seen": sightings, "kept": kept}
+
+
+def _check_capture(summary: dict, board_file, names: list[str]) -> None:
+    """A capture that `rig calibrate run` cannot use fails (exit 1) and says why; the views it kept
+    stay in its folder."""
+    from calibration.solve import MIN_VIEWS_PER_CAMERA
+    from rig.errors import RigError
+
+    looked = summary["views_looked_at"]
+    if summary["views_kept"] == 0:
+        if not any(summary["board_seen"].values()):
+            raise RigError(f"the board was never seen in {looked} frame sets: check that {board_file} describes the board shown "
+                           "(type, squares, sizes, marker dictionary) and that the cameras see it; no view was kept")
+        raise RigError(f"the board was seen but never with enough corners ({looked} frame sets); no view was kept")
+    few = {n: summary["views_per_camera"][n] for n in names if summary["views_per_camera"][n] < MIN_VIEWS_PER_CAMERA}
+    if few:
+        which = ", ".join(f"'{n}' in {v}" for n, v in few.items())
+        raise RigError(f"too few views for `rig calibrate run`: the board was seen by {which} of the {summary['views_kept']} kept views "
+                       f"({MIN_VIEWS_PER_CAMERA} per camera are needed); show it to those cameras and capture again into a new folder "
+                       f"(the views kept are in {summary['output']})")
 
 
 def _to_bgr(image, to_gray):

@@ -32,7 +32,7 @@ def register(sub) -> None:
 
 def cmd_init(args: argparse.Namespace) -> int:
     from common.files import atomic_write_bytes
-    from rig.cameras.sim import sim_rig_config
+    from rig.cameras.sim import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.commands._paths import output_file
     from rig.config import dump_config, parse_config
     from rig.errors import StorageError
@@ -52,6 +52,16 @@ def cmd_init(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise StorageError(f"{args.file}: could not write the config ({exc.strerror or exc})") from None
     print(f"wrote {args.file}: simulated rig with {len(cfg.cameras)} cameras ({', '.join(c.name for c in cfg.cameras)})")
+    # a newcomer has no board file yet: write the one that suits the simulated rig, never replacing one
+    board = args.file.parent / "board.toml"
+    if not board.exists():
+        try:
+            atomic_write_bytes(board, board_toml(SIM_RIG_BOARD).encode())
+            print(f"wrote {board}: the A0 ChArUco board the simulated cameras show (print one with `rig calibrate board`)")
+        except OSError as exc:
+            print(f"rig: note: could not write {board} ({exc.strerror or exc})", file=sys.stderr)
+    views = args.file.parent / "views"
+    print(f"next: rig calibrate capture -c {args.file} --board {board} -o {views}")
     return 0
 
 

@@ -72,6 +72,9 @@ def test_easymocap_yaml(rig, tmp_path):
     names = [node.at(i).string() for i in range(node.size())]
     assert names == rig.names
     for cam in rig.cameras:
+        # EasyMocap's read_camera: H = int(fs.getNode("H_<cam>").real()), likewise W: plain integers.
+        for key, size in ((f"H_{cam.name}", cam.height), (f"W_{cam.name}", cam.width)):
+            assert fi.getNode(key).isInt() and int(fi.getNode(key).real()) == size
         assert np.allclose(_read(fi, f"K_{cam.name}"), cam.K, **EXACT)
         assert _read(fi, f"dist_{cam.name}").shape == (1, 5)
         assert np.allclose(_read(fe, f"Rot_{cam.name}"), cam.R, **EXACT)
@@ -90,8 +93,12 @@ def test_anipose_toml_projects_like_our_model(rig, tmp_path):
         assert np.allclose(uv.reshape(-1, 2), cam.project(POINTS)[0], rtol=0, atol=PROJECTED_PX)
 
 
+def _gray_images(rig):
+    return {c.name: np.full((c.height, c.width), 40 + 30 * i, np.uint8) for i, c in enumerate(rig.cameras)}
+
+
 def test_nerfstudio_transforms_use_opengl_axes_and_pixel_corner_origin(rig, tmp_path):
-    export(rig, "nerfstudio", tmp_path)
+    export(rig, "nerfstudio", tmp_path, images=_gray_images(rig))
     data = json.loads((tmp_path / "transforms.json").read_text())
     assert len(data["frames"]) == len(rig.cameras)
     for frame, cam in zip(data["frames"], rig.cameras):
@@ -131,3 +138,22 @@ def test_colmap_text_model(rig, tmp_path):
 def test_unknown_format_is_an_error(rig, tmp_path):
     with pytest.raises(CalibrationError, match="unknown export format"):
         export(rig, "blender", tmp_path)
+
+
+def test_nerfstudio_writes_the_images_it_points_at(rig, tmp_path):
+    images = _gray_images(rig)
+    files = export(rig, "nerfstudio", tmp_path, images=images)
+    data = json.loads((tmp_path / "transforms.json").read_text())
+    for frame, cam in zip(data["frames"], rig.cameras):
+        img = cv2.imread(str(tmp_path / frame["file_path"]), cv2.IMREAD_UNCHANGED)
+        assert img is not None and (img.shape[1], img.shape[0]) == (frame["w"], frame["h"]) == (cam.width, cam.height)
+        assert np.array_equal(img, images[cam.name]) and tmp_path / frame["file_path"] in files
+
+
+def test_nerfstudio_without_images_or_at_another_size_is_refused(rig, tmp_path):
+    with pytest.raises(CalibrationError, match="needs one image per camera"):
+        export(rig, "nerfstudio", tmp_path)
+    small = {c.name: np.zeros((10, 10), np.uint8) for c in rig.cameras}
+    with pytest.raises(CalibrationError, match="10x10 but it was calibrated at 1280x720"):
+        export(rig, "nerfstudio", tmp_path, images=small)
+    assert not (tmp_path / "transforms.json").exists() and not (tmp_path / "images").exists()

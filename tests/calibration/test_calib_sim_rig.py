@@ -4,6 +4,7 @@ through the volume, images from the simulator's renderer and sensor model, calib
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import pytest
@@ -88,6 +89,8 @@ def test_exports_of_the_six_camera_rig(sim_calibration, tmp_path, capsys):
     for fmt in ("opencv", "easymocap", "anipose", "nerfstudio", "colmap"):
         assert main(["calibrate", "export", str(path), "--format", fmt, "-o", str(tmp_path / fmt), "--json"]) == 0
         files = json.loads(capsys.readouterr().out)["files"]
-        assert files and all((tmp_path / fmt / f.split("/")[-1]).exists() for f in files)
+        assert files and all(Path(f).is_file() and Path(f).is_relative_to(tmp_path / fmt) for f in files)
     data = json.loads((tmp_path / "nerfstudio" / "transforms.json").read_text())
     assert len(data["frames"]) == 6
+    # The images it points at are written: by default, a view of the images the calibration was made from.
+    assert all((tmp_path / "nerfstudio" / f["file_path"]).is_file() for f in data["frames"])
