@@ -64,7 +64,7 @@ class Sizes:
 
 @dataclass
 class BackboneConfig:
-    kind: str = "tiny"  # tiny | oracle
+    kind: str = "tiny"  # tiny | stereo | oracle
     # oracle: "metric" keeps ground-truth metres; "canonical" divides both point maps by their mean
     # distance to the left camera, as DUSt3R/MASt3R normalise theirs.
     oracle_scale: str = "metric"
@@ -73,10 +73,24 @@ class BackboneConfig:
     heads: int = 4
     encoder_blocks: int = 4
     decoder_blocks: int = 4
+    # stereo: plane sweep between the calibrated views (inference.model.stereo_backbone)
+    stereo_features: int = 32
+    stereo_groups: int = 8
+    stereo_depths: int = 48
+    stereo_near: float = 0.5  # nearest plane, in baselines (the mean of the planes' inverse depths, an untrained
+    # model's depth, is then about one baseline: the centre of an arc rig)
+    stereo_far: float = 10.0  # farthest plane, in baselines
 
     def __post_init__(self) -> None:
-        if self.kind not in ("tiny", "oracle"):
-            raise InferenceError(f"backbone: unknown kind '{self.kind}' (allowed: tiny, oracle)")
+        if self.kind not in ("tiny", "stereo", "oracle"):
+            raise InferenceError(f"backbone: unknown kind '{self.kind}' (allowed: tiny, stereo, oracle)")
+        if self.kind == "stereo":
+            if self.stereo_features % self.stereo_groups:
+                raise InferenceError(f"backbone: stereo_features ({self.stereo_features}) must be a multiple of stereo_groups ({self.stereo_groups})")
+            if not 0 < self.stereo_near < self.stereo_far:
+                raise InferenceError(f"backbone: need 0 < stereo_near < stereo_far, got {self.stereo_near}, {self.stereo_far}")
+            if self.stereo_depths < 2 or self.patch % 4:
+                raise InferenceError("backbone: stereo needs at least 2 depths and a patch that is a multiple of 4")
         if self.oracle_scale not in ("metric", "canonical"):
             raise InferenceError(f"backbone: oracle_scale must be metric or canonical, got '{self.oracle_scale}'")
 

@@ -231,11 +231,3 @@ class OracleBackbone(Backbone):
         tok_l = F.pixel_unshuffle(left, p).flatten(2).transpose(1, 2)
         tok_r = F.pixel_unshuffle(right, p).flatten(2).transpose(1, 2)
         return PointMaps(pts_l, pts_r, conf_l, conf_r, tok_l, tok_r, self.grid)
-
-
-def build_backbone(cfg: BackboneConfig, coarse_size: tuple[int, int]) -> Backbone:
-    if cfg.kind == "tiny":
-        return TinyBackbone(cfg, coarse_size)
-    if cfg.kind == "oracle":
-        return OracleBackbone(cfg, coarse_size)
-    raise ValueError(f"unknown backbone kind {cfg.kind!r}")

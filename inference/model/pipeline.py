@@ -23,16 +23,24 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from inference.config import STAGES, ModelConfig
-from inference.model.backbone import build_backbone, confidence_to_opacity
+from inference.model.backbone import Backbone, OracleBackbone, TinyBackbone, confidence_to_opacity
 from inference.model.depth_init import DepthInit
 from inference.model.geometry import relative_pose, resize_intrinsics
 from inference.model.splat import PlaneSplatter
 from inference.model.stage1 import AffineTransform
+from inference.model.stereo_backbone import StereoBackbone
 from inference.model.stage2 import ColourInit, DepthRefine, GaussianPlane
 
 INPUT_NAMES = ("left_image", "right_image", "left_K", "right_K", "left_pose", "right_pose", "target_K", "target_pose")
 DEPTH_INPUT_NAMES = ("left_depth", "right_depth")
 OUTPUT_NAMES = ("image", "depth")
+
+
+BACKBONES = {"tiny": TinyBackbone, "oracle": OracleBackbone, "stereo": StereoBackbone}
+
+
+def build_backbone(cfg, coarse_size: tuple[int, int]) -> Backbone:
+    return BACKBONES[cfg.kind](cfg, coarse_size)
 
 
 class StageTimer:

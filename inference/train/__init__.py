@@ -1,1 +1,1 @@
-"""Training of Splat-SAP: losses (and, as it grows, data, trainer)."""
+"""Training of Splat-SAP: losses, differentiable point splatting, Chamfer, data, stages and the trainer."""

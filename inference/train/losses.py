@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from inference.train.chamfer import chamfer_6d as exact_chamfer
+
 
 def _gaussian_window(size: int, sigma: float, channels: int, dtype, device) -> torch.Tensor:
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
@@ -19,9 +21,9 @@ def _gaussian_window(size: int, sigma: float, channels: int, dtype, device) -> t
     return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
 
 
-def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, c1: float = 0.01**2, c2: float = 0.03**2) -> torch.Tensor:
-    """Mean SSIM of images (B, C, H, W) in [0, 1] (Wang et al. 2004: 11x11 Gaussian window, sigma 1.5;
-    borders zero-padded as in the 3DGS implementation)."""
+def ssim_map(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, c1: float = 0.01**2, c2: float = 0.03**2) -> torch.Tensor:
+    """Per-pixel SSIM (B, C, H, W) of images (B, C, H, W) in [0, 1] (Wang et al. 2004: 11x11 Gaussian
+    window, sigma 1.5; borders zero-padded as in the 3DGS implementation)."""
     c = x.shape[1]
     w = _gaussian_window(window, sigma, c, x.dtype, x.device)
     pad = window // 2
@@ -32,7 +34,12 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     sxy = F.conv2d(x * y, w, padding=pad, groups=c) - mu_x * mu_y
     num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
     den = (mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2)
-    return (num / den).mean()
+    return num / den
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, c1: float = 0.01**2, c2: float = 0.03**2) -> torch.Tensor:
+    """Mean SSIM of images (B, C, H, W) in [0, 1]."""
+    return ssim_map(x, y, window, sigma, c1, c2).mean()
 
 
 def rendering_loss(pred: torch.Tensor, truth: torch.Tensor, beta_l1: float = 0.8, beta_ssim: float = 0.2) -> torch.Tensor:
@@ -45,24 +52,11 @@ def point_colour_set(points: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     return torch.cat([points.reshape(b, 3, -1), image.reshape(b, 3, -1)], dim=1).transpose(1, 2)
 
 
-def _directed(a: torch.Tensor, b: torch.Tensor, wa: torch.Tensor | None, wb: torch.Tensor | None, chunk: int) -> torch.Tensor:
-    """Mean over a's points of the distance to the nearest of b's (per batch item)."""
-    out = []
-    for i in range(0, a.shape[1], chunk):
-        d = torch.cdist(a[:, i : i + chunk], b)  # (B, n, M)
-        if wb is not None:
-            d = d + (1.0 - wb[:, None, :]) * 1e6  # points of b that do not count are never nearest
-        out.append(d.min(dim=2).values)
-    nearest = torch.cat(out, dim=1)  # (B, N)
-    if wa is None:
-        return nearest.mean(dim=1)
-    return (nearest * wa).sum(dim=1) / wa.sum(dim=1).clamp(min=1e-6)
-
-
-def chamfer_6d(a: torch.Tensor, b: torch.Tensor, weight_a: torch.Tensor | None = None, weight_b: torch.Tensor | None = None, chunk: int = 2048) -> torch.Tensor:
+def chamfer_6d(a: torch.Tensor, b: torch.Tensor, weight_a: torch.Tensor | None = None, weight_b: torch.Tensor | None = None) -> torch.Tensor:
     """Symmetric Chamfer distance CD(a->b) + CD(b->a) of point sets (B, N, D) and (B, M, D),
-    averaged over the batch. Optional weights (B, N) / (B, M) in {0, 1} leave out invalid points."""
-    return (_directed(a, b, weight_a, weight_b, chunk) + _directed(b, a, weight_b, weight_a, chunk)).mean()
+    averaged over the batch. Optional weights (B, N) / (B, M) in {0, 1} leave out invalid points.
+    Exact nearest neighbours without an all-pairs matrix (inference.train.chamfer)."""
+    return exact_chamfer(a, b, weight_a, weight_b)
 
 
 def stage1_loss(render: torch.Tensor, truth: torch.Tensor, chamfer: torch.Tensor, gamma: float = 0.5) -> torch.Tensor:

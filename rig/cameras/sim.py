@@ -396,3 +396,10 @@ class GroundTruth:
         from simulator.render import render
 
         return render(self.scene, model, float(sim_time_s)).depth
+
+    def depth_and_mask(self, model, sim_time_s: float):
+        """Depth (metres, 0 = nothing) and the person mask (bool) seen by `model` at scene time."""
+        from simulator.render import render
+
+        r = render(self.scene, model, float(sim_time_s))
+        return r.depth, r.mask

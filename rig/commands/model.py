@@ -61,6 +61,21 @@ def register(subparsers) -> None:
     b.add_argument("--json", action="store_true", help="print one JSON object: torch_ms, ort_ms (per stage and total), size, speedup")
     b.set_defaults(func=cmd_bench)
 
+    v = sub.add_parser("eval", help="PSNR/SSIM, depth error and scale jitter on sequences with supervision cameras",
+                       description="Render every supervision camera of every (or every k-th) frame set from the two sources and report "
+                                   "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth (simulator "
+                                   "takes) and the frame-to-frame jitter of stage 1's scaling S; with the oracle pipeline (same stage-2 "
+                                   "weights) and the nearer source image as references. LPIPS is not reported (it needs pretrained weights).")
+    v.add_argument("--model", required=True, metavar="MODEL",
+                   help="a checkpoint (.pt, e.g. from rig train) or an ONNX export of one (its recorded checkpoint is used)")
+    v.add_argument("--sequence", required=True, nargs="+", type=Path, metavar="SEQ",
+                   help="sequence folders (a rig sim dataset folder stands for its takes)")
+    v.add_argument("--every", type=int, default=1, help="use every k-th frame set (default 1)")
+    v.add_argument("--max-sets", type=int, help="at most this many frame sets")
+    v.add_argument("--no-references", action="store_true", help="skip the oracle and nearer-source references")
+    v.add_argument("--json", action="store_true", help="print every figure as one JSON object")
+    v.set_defaults(func=cmd_eval)
+
 
 def _providers(text: str | None) -> list[str] | None:
     return [p.strip() for p in text.split(",") if p.strip()] if text else None
@@ -253,4 +268,59 @@ def cmd_bench(args: argparse.Namespace) -> int:
         emit_json({**runs[0], "runs": runs} if len(runs) > 1 else runs[0])
     else:
         print("\n\n".join(format_table(r) for r in runs))
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from rig.commands._output import emit_json
+    from rig.commands.train import expand_sequences
+    from rig.errors import ConfigError
+    from rig.storage.dataset import TrainingSet
+
+    if args.every < 1:
+        raise ConfigError(f"--every must be at least 1, got {args.every}")
+    if args.max_sets is not None and args.max_sets < 1:
+        raise ConfigError(f"--max-sets must be at least 1, got {args.max_sets}")
+    model_path = Path(args.model)
+    if not model_path.is_file():
+        raise ConfigError(f"{model_path}: no such model")
+    sequences = expand_sequences(args.sequence)
+
+    from inference.evaluate.model_eval import evaluate
+    from inference.model.checkpoint import load_checkpoint, model_from_record
+
+    if model_path.suffix == ".onnx":
+        from inference.config import ModelConfig
+        from inference.runtime.metadata import read_file_metadata
+
+        meta = read_file_metadata(model_path)
+        model = model_from_record(ModelConfig.from_json(meta["splat_sap.config"]), meta["splat_sap.weights"])
+    else:
+        model = load_checkpoint(model_path)
+    if model.needs_depth:
+        raise ConfigError(f"{model_path}: an oracle model reads ground-truth depth; evaluate a trained model")
+    data = TrainingSet(sequences)
+    from rig.progress import ProgressBar
+
+    with ProgressBar("evaluating") as bar:
+        result = evaluate(model, data, every=args.every, max_sets=args.max_sets, references=not args.no_references,
+                          progress=None if args.json else bar.update)
+    result["model"] = str(model_path)
+    result["sequences"] = [str(s.root) for s in data.sequences]
+    if args.json:
+        emit_json(result)
+        return 0
+    print(f"{result['sets']} frame sets x {len(result['supervision'])} supervision cameras ({', '.join(result['supervision'])})")
+    rows = [("model", result)] + [(name, ref) for name, ref in result["references"].items()]
+    print(f"{'':16s} {'PSNR':>7s} {'SSIM':>6s} {'PSNR mask':>10s} {'SSIM mask':>10s}")
+    for name, r in rows:
+        o = r.get("overall", {})
+        fmt = lambda v, f: (f % v) if v is not None else "-"
+        print(f"{name:16s} {fmt(o.get('psnr'), '%7.2f'):>7s} {fmt(o.get('ssim'), '%6.3f'):>6s} "
+              f"{fmt(o.get('psnr_mask'), '%10.2f'):>10s} {fmt(o.get('ssim_mask'), '%10.3f'):>10s}")
+    if result["depth_absrel"] is not None:
+        print(f"stage-1 depth AbsRel (pixels both sources see): {100 * result['depth_absrel']:.2f} %")
+    if result["scale_jitter"] is not None:
+        j = result["scale_jitter"]
+        print(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")
     return 0

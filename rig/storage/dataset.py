@@ -34,6 +34,8 @@ class Sample:
     cameras: dict[str, CameraModel]
     depth: dict[str, Optional[np.ndarray]] = field(default_factory=dict)
     host_ts_ns: dict[str, int] = field(default_factory=dict)
+    masks: dict[str, Optional[np.ndarray]] = field(default_factory=dict)
+    key: str = ""
 
 
 class Sequence:
@@ -79,32 +81,52 @@ class Sequence:
             recs = row["frames"]
             if any(recs.get(n) is None for n in names):
                 continue
-            images, depth, ts = {}, {}, {}
-            for n in names:
-                rec = recs[n]
-                path = self.root / rec["file"]
-                try:
-                    stored = read_netpbm(path)
-                except FileNotFoundError:
-                    raise SequenceError(f"{path}: missing; `rig record validate {self.root}` lists every damaged frame") from None
-                except NetpbmError as exc:
-                    raise SequenceError(f"{exc}; `rig record validate {self.root}` lists every damaged frame") from None
-                img = self.meta.camera(n).decoded(stored)
-                if img.ndim == 2:
-                    img = np.repeat(img[:, :, None], 3, axis=2)
-                if img.dtype == np.uint16:
-                    img = (img >> 8).astype(np.uint8)
-                if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
-                    img = _resize(img, size)
-                images[n] = img
-                ts[n] = rec["host_ts_ns"]
-                depth[n] = self.depth(n, rec.get("sim_time_s"), size) if with_depth else None
-            yield Sample(row["set"], row.get("trigger"), images, models, depth, ts)
+            yield self._read(row, names, models, size, with_depth)
+
+    def complete_sets(self, cameras: Seq[str]) -> list[int]:
+        """Row positions of the sets in which every one of `cameras` has a frame."""
+        return [i for i, row in enumerate(self.rows) if all(row["frames"].get(n) is not None for n in cameras)]
+
+    def sample(self, position: int, cameras: Seq[str], size: Optional[tuple[int, int]] = None, with_depth: bool = False) -> Sample:
+        """The set at row `position` (see `complete_sets`), random access."""
+        names = list(cameras)
+        models = {n: self.camera_model(n) for n in names}
+        if size is not None:
+            models = {n: m.scaled(*size) for n, m in models.items()}
+        return self._read(self.rows[position], names, models, size, with_depth)
+
+    def _read(self, row: dict, names: list[str], models: dict, size, with_depth: bool) -> Sample:
+        recs = row["frames"]
+        images, depth, masks, ts = {}, {}, {}, {}
+        for n in names:
+            rec = recs[n]
+            path = self.root / rec["file"]
+            try:
+                stored = read_netpbm(path)
+            except FileNotFoundError:
+                raise SequenceError(f"{path}: missing; `rig record validate {self.root}` lists every damaged frame") from None
+            except NetpbmError as exc:
+                raise SequenceError(f"{exc}; `rig record validate {self.root}` lists every damaged frame") from None
+            img = self.meta.camera(n).decoded(stored)
+            if img.ndim == 2:
+                img = np.repeat(img[:, :, None], 3, axis=2)
+            if img.dtype == np.uint16:
+                img = (img >> 8).astype(np.uint8)
+            if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+                img = _resize(img, size)
+            images[n] = img
+            ts[n] = rec["host_ts_ns"]
+            depth[n], masks[n] = self.truth(n, rec.get("sim_time_s"), size) if with_depth else (None, None)
+        return Sample(row["set"], row.get("trigger"), images, models, depth, ts, masks)
 
     def depth(self, cam: str, sim_time_s: Optional[float], size: Optional[tuple[int, int]] = None) -> Optional[np.ndarray]:
         """Ground-truth depth (metres, 0 = nothing) of a simulator frame, rendered at the chosen size."""
+        return self.truth(cam, sim_time_s, size)[0]
+
+    def truth(self, cam: str, sim_time_s: Optional[float], size: Optional[tuple[int, int]] = None):
+        """Ground-truth depth and person mask of a simulator frame at the chosen size ((None, None) for a recorded take)."""
         if self.ground_truth is None or sim_time_s is None:
-            return None
+            return None, None
         from rig.cameras.sim import GroundTruth
 
         if self._truth is None:
@@ -112,9 +134,48 @@ class Sequence:
         model = self.ground_truth[cam]
         if size is not None:
             model = model.scaled(*size)
-        return self._truth.depth(model, sim_time_s)
+        return self._truth.depth_and_mask(model, sim_time_s)
 
 
 def _resize(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     shrink = size[0] < img.shape[1]
     return cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+
+class TrainingSet:
+    """Frame sets of one or more sequences for `rig train` and `rig model eval` (the FrameSource of
+    inference.train.data): the cameras with roles left and right are the sources, every camera with
+    role supervision a target. Frames are served as recorded (full size, with lens distortion) with
+    their calibrated cameras; only sets in which every camera has a frame are used."""
+
+    def __init__(self, roots: Seq[str | Path]):
+        if not roots:
+            raise SequenceError("no sequence given")
+        self.sequences = [Sequence(r) for r in roots]
+        first = self.sequences[0]
+        roles = {c.role: c.name for c in first.meta.cameras if c.role in ("left", "right")}
+        if "left" not in roles or "right" not in roles:
+            raise SequenceError(f"{first.root}: the sequence has no camera with role left and one with role right")
+        self.left, self.right = roles["left"], roles["right"]
+        self.supervision = [c.name for c in first.meta.cameras if c.role == "supervision"]
+        if not self.supervision:
+            raise SequenceError(f"{first.root}: the sequence has no supervision camera (training renders the sources into them)")
+        names = [self.left, self.right] + self.supervision
+        self.positions: list[tuple[int, int]] = []
+        for k, seq in enumerate(self.sequences):
+            have = {c.name: c.role for c in seq.meta.cameras}
+            if any(have.get(n) != r for n, r in zip(names, ["left", "right"] + ["supervision"] * len(self.supervision))):
+                raise SequenceError(f"{seq.root}: its cameras differ from {first.root}'s ({', '.join(names)} with the same roles)")
+            for n in names:
+                seq.camera_model(n)  # a clear error now for a sequence without calibration
+            self.positions += [(k, p) for p in seq.complete_sets(names)]
+        self.names = names
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def frame_set(self, index: int, with_truth: bool = False) -> Sample:
+        k, p = self.positions[index]
+        s = self.sequences[k].sample(p, self.names, with_depth=with_truth)
+        s.key = f"{self.sequences[k].root.name}#{s.set}"
+        return s

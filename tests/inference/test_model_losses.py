@@ -66,7 +66,7 @@ def test_chamfer_6d_matches_brute_force_and_has_gradients():
     img = torch.tensor(rng.random((1, 3, 6, 7)))
     other = torch.tensor(rng.normal(size=(1, 40, 6)))
     a = point_colour_set(pts, img)
-    loss = chamfer_6d(a, other, chunk=5)
+    loss = chamfer_6d(a, other)
     an, on = a[0].detach().numpy(), other[0].numpy()
     d = np.linalg.norm(an[:, None] - on[None], axis=-1)
     assert abs(loss.item() - (d.min(1).mean() + d.min(0).mean())) < 1e-10

@@ -1,0 +1,144 @@
+"""The model's figures on sequences with supervision cameras (`rig model eval`, benchmarks/model_eval.py).
+
+For every (or every k-th) frame set, the model renders every supervision camera from the two
+sources; against the camera's real image (undistorted, at the output size):
+- PSNR and SSIM over the full image and over the person mask (where the sequence carries one:
+  simulator takes do);
+- stage 1's depth against ground truth (where it exists): AbsRel = mean |d - d*| / d* over the
+  pixels of each source that the other source also sees (from the ground-truth depths);
+- the frame-to-frame jitter of stage 1's scaling S: |S_t - S_{t-1}| / S_{t-1} on consecutive sets
+  of a sequence (mean and max over the pairs, the three components averaged).
+The same figures for two references in the same run: the oracle pipeline (ground-truth depth
+through the oracle backbone, the same stage-2 weights) and the nearer source's image as it is
+(what a viewer sees without a model). LPIPS is left out: it needs pretrained network weights.
+"""
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+from inference.config import ModelConfig
+from inference.metrics import covisibility, psnr
+from inference.model.geometry import relative_pose, transform_points
+from inference.model.pipeline import SplatSAP, build_model
+from inference.runtime.preprocess import pinhole
+from inference.train.data import FrameSource, Preprocessor
+from inference.train.losses import ssim_map
+from inference.train.stages import stage1_forward
+
+STAGE2_PARTS = ("depth_init.", "depth_refine.", "colour_init.", "gaussian_plane.", "splatting.")
+
+
+def oracle_twin(model: SplatSAP) -> SplatSAP:
+    """The oracle pipeline with `model`'s stage-2 weights (metric ground-truth depth, S = 1, T = 0)."""
+    cfg = ModelConfig.from_dict(model.cfg.to_dict())
+    cfg.backbone.kind = "oracle"
+    cfg.backbone.oracle_scale = "metric"
+    cfg.stage1.affine = "bypass"
+    twin = build_model(cfg, seed=0)
+    state = {k: v for k, v in model.state_dict().items() if k.startswith(STAGE2_PARTS)}
+    missing = [k for k in twin.state_dict() if k.startswith(STAGE2_PARTS) and k not in state]
+    if missing:
+        raise ValueError(f"stage-2 weights missing: {missing[:3]}")
+    twin.load_state_dict(state, strict=False)
+    return twin.eval()
+
+
+@dataclass
+class _Scores:
+    psnr: list
+    ssim: list
+    psnr_mask: list
+    ssim_mask: list
+
+    @classmethod
+    def new(cls) -> "_Scores":
+        return cls([], [], [], [])
+
+    def add(self, pred: torch.Tensor, truth: torch.Tensor, mask: Optional[np.ndarray]) -> None:
+        p = pred[0].permute(1, 2, 0).cpu().numpy()
+        t = truth[0].permute(1, 2, 0).cpu().numpy()
+        smap = ssim_map(pred, truth)[0].mean(0).cpu().numpy()
+        self.psnr.append(psnr(p, t))
+        self.ssim.append(float(smap.mean()))
+        if mask is not None and mask.any():
+            self.psnr_mask.append(psnr(p, t, mask))
+            self.ssim_mask.append(float(smap[mask].mean()))
+
+    def summary(self) -> dict:
+        def mean(x):
+            return round(float(np.mean(x)), 4) if x else None
+
+        return {"psnr": mean(self.psnr), "ssim": mean(self.ssim), "psnr_mask": mean(self.psnr_mask),
+                "ssim_mask": mean(self.ssim_mask), "views": len(self.psnr)}
+
+
+@torch.no_grad()
+def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Optional[int] = None,
+             references: bool = True, progress: Optional[Callable[[int, int], None]] = None) -> dict:
+    model = model.eval()
+    sizes = model.cfg.sizes
+    pre = Preprocessor()
+    twin = oracle_twin(model) if references else None
+    picks = list(range(0, len(source), every))[: max_sets or None]
+    per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
+    absrel: list[float] = []
+    scales: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
+    for n, index in enumerate(picks):
+        fs = source.frame_set(index, with_truth=True)
+        L = pre.views(fs, [source.left], sizes.fine)
+        R = pre.views(fs, [source.right], sizes.fine)
+        *_, affine = stage1_forward(model, L, R)
+        seq, _, set_no = fs.key.rpartition("#")
+        scales[seq].append((int(set_no) if set_no.isdigit() else index, affine.scale[0].cpu().numpy().astype(np.float64)))
+        have_depth = all(fs.depth.get(c) is not None for c in (source.left, source.right))
+        gt_coarse = {}
+        if have_depth:
+            cams = {c: pinhole(fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
+            gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in cams}
+            pred_l = affine.points_left[0, 2].cpu().numpy()
+            to_right = relative_pose(R.poses, L.poses)
+            pred_r = transform_points(to_right, affine.points_right)[0, 2].cpu().numpy()
+            for c, other, pred in ((source.left, source.right, pred_l), (source.right, source.left, pred_r)):
+                seen = covisibility(cams[c], gt_coarse[c], [(cams[other], gt_coarse[other])])
+                if seen.any():
+                    absrel.append(float(np.mean(np.abs(pred[seen] - gt_coarse[c][seen]) / gt_coarse[c][seen])))
+        for sup in source.supervision:
+            T = pre.views(fs, [sup], sizes.output)
+            mask = None
+            if fs.masks.get(sup) is not None:
+                mask = pre.depth(fs.masks[sup].astype(np.float32), fs.cameras[sup], sizes.output) > 0.5
+            args = (L.images, R.images, L.K, R.K, L.poses, R.poses, T.K, T.poses)
+            per_cam["model"][sup].add(model.run(*args)["image"], T.images, mask)
+            if references:
+                if have_depth:
+                    depth_in = [torch.from_numpy(gt_coarse[c])[None, None] for c in (source.left, source.right)]
+                    per_cam["oracle"][sup].add(twin.run(*args, *depth_in)["image"], T.images, mask)
+                nearer = min((source.left, source.right), key=lambda c: np.linalg.norm(fs.cameras[c].center - fs.cameras[sup].center))
+                per_cam["nearest_source"][sup].add(pre.views(fs, [nearer], sizes.output).images, T.images, mask)
+        if progress is not None:
+            progress(n + 1, len(picks))
+    jitter = []
+    for seq, rows in scales.items():
+        rows.sort()
+        for (a, sa), (b, sb) in zip(rows, rows[1:]):
+            jitter.append(float(np.mean(np.abs(sb - sa) / np.abs(sa))))
+    out = {}
+    for name, cams in per_cam.items():
+        all_scores = _Scores.new()
+        for s in cams.values():
+            for f in ("psnr", "ssim", "psnr_mask", "ssim_mask"):
+                getattr(all_scores, f).extend(getattr(s, f))
+        out[name] = {"overall": all_scores.summary(), "cameras": {c: s.summary() for c, s in sorted(cams.items())}}
+    model_figures = out.pop("model", {})
+    return {
+        "sets": len(picks), "every": every, "supervision": list(source.supervision),
+        **model_figures,
+        "depth_absrel": round(float(np.mean(absrel)), 5) if absrel else None,
+        "scale_jitter": {"mean": round(float(np.mean(jitter)), 6), "max": round(float(np.max(jitter)), 6), "pairs": len(jitter)} if jitter else None,
+        "references": out,
+    }

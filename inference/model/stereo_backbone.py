@@ -1,0 +1,119 @@
+"""A calibrated plane-sweep stereo backbone: point maps a CPU can learn from scratch.
+
+The paper's backbone is MASt3R, a pretrained ViT whose weights cannot be had here (no model hub),
+and a ViT trained from scratch on a two-core machine does not learn stereo in the steps available.
+This backbone uses what every rig has, its calibration: it sweeps D fronto-parallel planes through
+each view (MVSNet's cost volume), so depth comes from matching features, not from a learned prior.
+
+For each view i (left and right, batched) and its partner j:
+- a small CNN gives features at 1/4 of the coarse size;
+- for D depths d_k (uniform in inverse depth between `near` and `far`, in units of the baseline),
+  the pixels of i at depth d_k are projected into j and j's features sampled there (4-D
+  grid_sample, the D hypotheses folded into the batch);
+- group-wise correlation, a small 3-D convolution over (depth, y, x) and a 2-D refinement that
+  sees i's features give D logits per pixel; the soft-argmin over inverse depth gives the depth;
+- the confidence (DUSt3R convention 1 + exp(x)) comes from the peak probability and the features.
+
+Point maps are returned in the left camera's frame in units of the baseline (scale-free, as
+MASt3R's are): stage 1's scaling S (initialised to the baseline) makes them metric. Tokens for
+stage 1's attention and ConvGRU are the features and the probability volume pooled to the patch
+grid.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from inference.config import BackboneConfig
+from inference.model.backbone import Backbone, PointMaps
+from inference.model.geometry import (
+    in_image,
+    invert_pose,
+    normalise_pixels,
+    pixel_rays,
+    project,
+    resize_intrinsics,
+    transform_points,
+)
+
+
+def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.GroupNorm(4, cout), nn.ReLU())
+
+
+class StereoBackbone(Backbone):
+    def __init__(self, cfg: BackboneConfig, coarse_size: tuple[int, int]):
+        super().__init__()
+        self.cfg = cfg
+        w, h = coarse_size
+        p = cfg.patch
+        self.coarse_size = (w, h)
+        self.grid = (h // p, w // p)
+        self.volume_size = (w // 4, h // 4)
+        c = cfg.stereo_features
+        d = cfg.stereo_depths
+        self.features = nn.Sequential(_conv(3, 32, 2), _conv(32, 32), _conv(32, 48, 2), _conv(48, 48), nn.Conv2d(48, c, 1))
+        self.groups = cfg.stereo_groups
+        self.regularise = nn.Sequential(
+            nn.Conv3d(self.groups + 1, 8, 3, padding=1), nn.ReLU(), nn.Conv3d(8, 8, 3, padding=1), nn.ReLU(), nn.Conv3d(8, 1, 3, padding=1)
+        )
+        self.refine = nn.Sequential(nn.Conv2d(d + c, 64, 3, padding=1), nn.ReLU(), nn.Conv2d(64, 64, 3, padding=1), nn.ReLU(), nn.Conv2d(64, d, 3, padding=1))
+        nn.init.zeros_(self.refine[-1].weight)
+        nn.init.zeros_(self.refine[-1].bias)
+        self.confidence = nn.Sequential(nn.Conv2d(c + 2, 32, 3, padding=1), nn.ReLU(), nn.Conv2d(32, 1, 3, padding=1))
+        nn.init.zeros_(self.confidence[-1].weight)
+        nn.init.constant_(self.confidence[-1].bias, 3.0)  # opacity ~0.95 before training
+        inv = torch.linspace(1.0 / cfg.stereo_near, 1.0 / cfg.stereo_far, d)
+        self.register_buffer("inverse_depths", inv, persistent=False)
+        self.token_dim = c + d
+
+    def _sweep(self, feats, other_feats, K, other_K, to_other):
+        """Logits (N, D, h, w) of the D depth planes of each reference view. Depths in baseline units;
+        `to_other` maps reference-camera points (baseline units) into the other camera."""
+        n, c, h, w = feats.shape
+        d = self.inverse_depths.shape[0]
+        rays = pixel_rays(K, w, h)  # (N, 3, h, w)
+        depths = (1.0 / self.inverse_depths).reshape(1, d, 1, 1, 1)
+        pts = (rays[:, None] * depths).reshape(n, d * 3, h, w).reshape(n, d, 3, h * w).permute(0, 2, 1, 3)  # (N, 3, D, hw)
+        uv, z = project(transform_points(to_other, pts), other_K)  # (N, 2, D, hw)
+        vis = in_image(uv, z, w, h).reshape(n, 1, d, h, w)
+        grid = normalise_pixels(uv.reshape(n, 2, d * h, w), w, h)  # (N, D*h, w, 2)
+        # Fold the D planes into the batch: sample the other view's features D times (4-D grid_sample).
+        grid = grid.reshape(n, d, h, w, 2).reshape(n * d, h, w, 2)
+        src = other_feats[:, None].expand(n, d, c, h, w).reshape(n * d, c, h, w)
+        warped = F.grid_sample(src, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        warped = warped.reshape(n, d, self.groups, c // self.groups, h, w)
+        ref = feats.reshape(n, 1, self.groups, c // self.groups, h, w)
+        corr = (warped * ref).mean(dim=3).permute(0, 2, 1, 3, 4)  # (N, G, D, h, w)
+        logits = self.regularise(torch.cat([corr, vis], dim=1))[:, 0]  # (N, D, h, w)
+        return logits + self.refine(torch.cat([logits, feats], dim=1))
+
+    def forward(self, left, right, left_K, right_K, right_to_left, left_depth=None, right_depth=None) -> PointMaps:
+        b = left.shape[0]
+        cw, ch = self.coarse_size
+        vw, vh = self.volume_size
+        baseline = torch.sqrt((right_to_left[:, :3, 3] ** 2).sum(-1)).clamp(min=1e-6)
+        # The rig in baseline units: translations divided by the baseline.
+        unit = torch.cat([torch.ones(b, 3, 3, dtype=left.dtype, device=left.device), (1.0 / baseline).reshape(b, 1, 1).expand(b, 3, 1)], dim=2)
+        unit = torch.cat([unit, torch.ones(b, 1, 4, dtype=left.dtype, device=left.device)], dim=1)
+        r2l = right_to_left * unit
+        l2r = invert_pose(r2l)
+        feats = self.features(torch.cat([left, right], dim=0) * 2.0 - 1.0)  # (2B, C, h, w)
+        other = torch.cat([feats[b:], feats[:b]], dim=0)
+        k_vol = resize_intrinsics(torch.cat([left_K, right_K], dim=0), (cw, ch), (vw, vh))
+        k_other = torch.cat([k_vol[b:], k_vol[:b]], dim=0)
+        logits = self._sweep(feats, other, k_vol, k_other, torch.cat([l2r, r2l], dim=0))
+        prob = torch.softmax(logits, dim=1)
+        inv = (prob * self.inverse_depths.reshape(1, -1, 1, 1)).sum(dim=1, keepdim=True)
+        peak = prob.max(dim=1, keepdim=True).values
+        conf_logit = self.confidence(torch.cat([feats, peak, inv], dim=1))
+        inv_c = F.interpolate(inv, size=(ch, cw), mode="bilinear", align_corners=False)
+        conf = 1.0 + torch.exp(F.interpolate(conf_logit, size=(ch, cw), mode="bilinear", align_corners=False).clamp(max=20.0))
+        k_coarse = torch.cat([left_K, right_K], dim=0)
+        pts = pixel_rays(k_coarse, cw, ch) / inv_c.clamp(min=1e-6)
+        pts_l = pts[:b]
+        pts_r = transform_points(r2l, pts[b:])
+        p = self.cfg.patch
+        tokens = F.avg_pool2d(torch.cat([feats, prob], dim=1), p // 4).flatten(2).transpose(1, 2)  # (2B, h*w, C + D)
+        return PointMaps(pts_l, pts_r, conf[:b], conf[b:], tokens[:b], tokens[b:], self.grid)

@@ -1,0 +1,113 @@
+"""Typed training configuration (saved with every checkpoint).
+
+The paper's self-supervised schedule: stage 1 trains the backbone and the affine transform with the
+rendering loss of the point maps in the supervision cameras plus gamma times the 6-D Chamfer
+regulariser; stage 2 freezes them and trains depth refinement, colour blending and the Gaussian
+plane with lambda_fine * L(C, I) + lambda_render * L(render, I), L = beta_l1 L1 + beta_ssim (1 - SSIM).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from typing import Any
+
+from inference.config import ModelConfig, Sizes
+from inference.errors import InferenceError
+
+
+@dataclass
+class StageSchedule:
+    steps: int = 1000
+    lr: float = 2e-4
+    batch: int = 2  # frame sets per step (the global batch, split across processes)
+    warmup: int = 50  # linear learning-rate warm-up steps, then cosine decay to lr * final_lr
+    final_lr: float = 0.1
+    grad_clip: float = 1.0
+
+    def check(self, where: str) -> None:
+        if not isinstance(self.steps, int) or self.steps < 0:
+            raise InferenceError(f"{where}.steps must be an integer >= 0, got {self.steps!r}")
+        if not isinstance(self.batch, int) or self.batch < 1:
+            raise InferenceError(f"{where}.batch must be an integer >= 1, got {self.batch!r}")
+        if not self.lr > 0:
+            raise InferenceError(f"{where}.lr must be positive, got {self.lr!r}")
+
+
+@dataclass
+class LossWeights:
+    gamma: float = 0.5  # stage 1: weight of the 6-D Chamfer regulariser
+    lambda_fine: float = 0.5  # stage 2: the blended colour C at the fine size
+    lambda_render: float = 0.5  # stage 2: the splatted render at the output size
+    beta_l1: float = 0.8
+    beta_ssim: float = 0.2
+
+
+@dataclass
+class TrainConfig:
+    model: ModelConfig = field(default_factory=lambda: ModelConfig.for_backbone("stereo", Sizes.preset("preview")))
+    stage1: StageSchedule = field(default_factory=lambda: StageSchedule(steps=2000, lr=3e-4, batch=2))
+    stage2: StageSchedule = field(default_factory=lambda: StageSchedule(steps=1000, lr=2e-4, batch=1))
+    loss: LossWeights = field(default_factory=LossWeights)
+    supervision_per_step: int = 2  # supervision cameras rendered per frame set in a step
+    point_radius: int = 1  # stage-1 point splat window half-size (target pixels)
+    frame_stride: int = 1  # use every k-th set of each sequence for training
+    eval_every: int = 200  # steps between evaluations (sample PNG, loss curve, held-out PSNR)
+    eval_sets: int = 4  # held-out frame sets rendered at each evaluation
+    checkpoint_every: int = 100  # steps between checkpoints (one is also written at each evaluation and at the end)
+    seed: int = 0
+
+    def check(self) -> None:
+        self.stage1.check("stage1")
+        self.stage2.check("stage2")
+        if self.model.backbone.kind == "oracle":
+            raise InferenceError("the oracle backbone reads ground-truth depth: it cannot be trained self-supervised")
+        for name in ("supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise InferenceError(f"{name} must be an integer >= 1, got {v!r}")
+
+    @property
+    def total_steps(self) -> int:
+        return self.stage1.steps + self.stage2.steps
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True, indent=1)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
+        if not isinstance(d, dict):
+            raise InferenceError("training config: expected an object")
+        d = dict(d)
+        model = ModelConfig.from_dict(d.pop("model")) if "model" in d else None
+        cfg = _build(cls, d, "train")
+        if model is not None:
+            cfg.model = model
+        cfg.check()
+        return cfg
+
+
+def _build(cls, d: dict, where: str):
+    known = {f.name for f in fields(cls)}
+    unknown = set(d) - known
+    if unknown:
+        raise InferenceError(f"{where}: unknown keys {sorted(unknown)} (allowed: {', '.join(sorted(known))})")
+    defaults = cls()
+    kwargs = {}
+    for name, value in d.items():
+        current = getattr(defaults, name)
+        if is_dataclass(current):
+            if not isinstance(value, dict):
+                raise InferenceError(f"{where}.{name}: expected a table")
+            kwargs[name] = _build(type(current), value, f"{where}.{name}")
+        elif isinstance(current, bool) or not isinstance(current, (int, float)):
+            kwargs[name] = value
+        elif isinstance(current, int) and not isinstance(value, int):
+            raise InferenceError(f"{where}.{name}: expected an integer, got {value!r}")
+        elif not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise InferenceError(f"{where}.{name}: expected a number, got {value!r}")
+        else:
+            kwargs[name] = type(current)(value)
+    return cls(**kwargs)

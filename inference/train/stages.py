@@ -1,0 +1,125 @@
+"""The two training stages as modules whose forward returns the loss (what DDP wraps).
+
+A `Batch` holds B frame sets: the two sources at the fine size and S supervision cameras per set
+at the sizes the stage compares at. Supervision cameras are the targets; the model never sees them.
+
+- Stage 1 (`Stage1Loss`): backbone + affine transform. The metric point maps of both sources, each
+  point coloured by its source pixel and weighted by its opacity, are splatted into every
+  supervision camera at the coarse size (inference.train.point_splat) and compared with its image
+  (L = beta_l1 L1 + beta_ssim (1 - SSIM)); plus gamma times the symmetric 6-D Chamfer distance
+  between the two views' (xyz, rgb) sets. A point counts in the Chamfer only where it projects
+  inside the other source's image: parts of the scene one source cannot see have no partner.
+- Stage 2 (`Stage2Loss`): stage 1 frozen; the whole pipeline renders each supervision camera;
+  lambda_fine L(C, I_fine) + lambda_render L(render, I).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from inference.model.backbone import confidence_to_opacity
+from inference.model.geometry import in_image, project, relative_pose, resize_intrinsics, transform_points
+from inference.model.pipeline import SplatSAP
+from inference.train.chamfer import chamfer_6d
+from inference.train.config import LossWeights
+from inference.train.data import Views
+from inference.train.losses import point_colour_set, rendering_loss
+from inference.train.point_splat import PointSplatConfig, splat_points
+
+
+@dataclass
+class Batch:
+    left: Views  # (B, ...) at the fine size
+    right: Views
+    targets: Views  # (B*S, ...) at the stage's comparison size (coarse for stage 1, output for stage 2)
+    targets_fine: Views | None  # (B*S, ...) at the fine size (stage 2)
+    per_set: int  # S
+
+    def __len__(self) -> int:
+        return self.left.images.shape[0]
+
+
+def _expand(x: torch.Tensor, s: int) -> torch.Tensor:
+    """(B, ...) -> (B*S, ...), each item repeated S times in place."""
+    return x.repeat_interleave(s, dim=0)
+
+
+def stage1_forward(model: SplatSAP, left: Views, right: Views):
+    """Point maps and affine transform as the pipeline computes them (coarse images and intrinsics)."""
+    s = model.cfg.sizes
+    cw, ch = s.coarse
+    left_c = F.interpolate(left.images, size=(ch, cw), mode="bilinear", align_corners=False)
+    right_c = F.interpolate(right.images, size=(ch, cw), mode="bilinear", align_corners=False)
+    kl = resize_intrinsics(left.K, s.fine, s.coarse)
+    kr = resize_intrinsics(right.K, s.fine, s.coarse)
+    r2l = relative_pose(left.poses, right.poses)
+    pm = model.point_init(left_c, right_c, kl, kr, r2l)
+    affine = model.affine_transform(pm, kl, kr, r2l)
+    return left_c, right_c, kl, kr, r2l, pm, affine
+
+
+def _overlap(points: torch.Tensor, to_other: torch.Tensor, K: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    uv, z = project(transform_points(to_other, points), K)
+    return in_image(uv, z, size[0], size[1])
+
+
+class Stage1Loss(nn.Module):
+    def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1):
+        super().__init__()
+        self.model = model
+        self.w = weights
+        self.splat = PointSplatConfig(radius=point_radius)
+
+    def forward(self, batch: Batch) -> tuple[torch.Tensor, dict[str, float], dict]:
+        m = self.model
+        cw, ch = m.cfg.sizes.coarse
+        left_c, right_c, kl, kr, r2l, pm, affine = stage1_forward(m, batch.left, batch.right)
+        b = left_c.shape[0]
+        n = batch.per_set
+        pts = torch.cat([affine.points_left.flatten(2), affine.points_right.flatten(2)], dim=2)  # (B, 3, 2HW), left frame
+        cols = torch.cat([left_c.flatten(2), right_c.flatten(2)], dim=2)
+        ops = torch.cat([confidence_to_opacity(pm.conf_left).flatten(2), confidence_to_opacity(pm.conf_right).flatten(2)], dim=2)
+        to_target = relative_pose(batch.targets.poses, _expand(batch.left.poses, n))
+        render = splat_points(_expand(pts, n), _expand(cols, n), _expand(ops, n), to_target, batch.targets.K, (cw, ch), self.splat)
+        l_render = rendering_loss(render.image, batch.targets.images, self.w.beta_l1, self.w.beta_ssim)
+        # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
+        with torch.no_grad():
+            l2r = relative_pose(batch.right.poses, batch.left.poses)
+            w_l = _overlap(affine.points_left, l2r, kr, (cw, ch)).reshape(b, -1)
+            w_r = _overlap(affine.points_right, torch.eye(4, dtype=kl.dtype, device=kl.device).expand(b, 4, 4), kl, (cw, ch)).reshape(b, -1)
+            w_l = (w_l > 0.5).to(kl.dtype)
+            w_r = (w_r > 0.5).to(kl.dtype)
+        cd = chamfer_6d(point_colour_set(affine.points_left, left_c), point_colour_set(affine.points_right, right_c), w_l, w_r)
+        loss = l_render + self.w.gamma * cd
+        with torch.no_grad():
+            mse = ((render.image - batch.targets.images) ** 2).mean()
+            metrics = {"loss": float(loss), "render": float(l_render), "chamfer": float(cd),
+                       "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
+                       "coverage": float(render.alpha.mean())}
+        return loss, metrics, {"render": render.image.detach(), "truth": batch.targets.images}
+
+
+class Stage2Loss(nn.Module):
+    def __init__(self, model: SplatSAP, weights: LossWeights):
+        super().__init__()
+        self.model = model
+        self.w = weights
+
+    def forward(self, batch: Batch) -> tuple[torch.Tensor, dict[str, float], dict]:
+        m = self.model
+        n = batch.per_set
+        L, R, T = batch.left, batch.right, batch.targets
+        out = m.run(_expand(L.images, n), _expand(R.images, n), _expand(L.K, n), _expand(R.K, n),
+                    _expand(L.poses, n), _expand(R.poses, n), T.K, T.poses)
+        colour = out["colours"].colour
+        l_fine = rendering_loss(colour, batch.targets_fine.images, self.w.beta_l1, self.w.beta_ssim)
+        l_render = rendering_loss(out["image"], T.images, self.w.beta_l1, self.w.beta_ssim)
+        loss = self.w.lambda_fine * l_fine + self.w.lambda_render * l_render
+        with torch.no_grad():
+            mse = ((out["image"] - T.images) ** 2).mean()
+            metrics = {"loss": float(loss), "fine": float(l_fine), "render": float(l_render),
+                       "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10)))}
+        return loss, metrics, {"render": out["image"].detach(), "truth": T.images}

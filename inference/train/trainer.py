@@ -1,0 +1,284 @@
+"""The training loop: both stages, checkpoints with resume, metrics log, sample and loss-curve PNGs.
+
+Output folder:
+    checkpoint.pt    the latest state (model, optimiser, step, training config): `--resume` reads it;
+                     it is also a model checkpoint (`rig model export --checkpoint`)
+    model.pt         the trained model once both stages are done
+    train.json       the training config and the sequences
+    metrics.jsonl    one JSON line per step (and per evaluation, "eval": true)
+    samples/step-NNNNNN.png   at each evaluation: renders of held-out sets beside their truth
+    loss.png         the loss curves, redrawn at each evaluation
+
+Batches are drawn from a generator seeded by (seed, stage, step), so a resumed run sees the batches
+the uninterrupted one would have seen and continues the same loss curve. With torch.distributed
+initialised (torchrun), every process draws the same global batch and computes its share; DDP
+averages the gradients, so N processes step as one process on the whole batch would.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+
+from common.files import atomic_path, atomic_write_json
+from inference.errors import InferenceError, OutputError
+from inference.model.checkpoint import FORMAT, VERSION
+from inference.model.pipeline import SplatSAP, build_model
+from inference.train.config import StageSchedule, TrainConfig
+from inference.train.data import FrameSource, Preprocessor, stack_views
+from inference.train.plots import save_loss_curve, save_samples
+from inference.train.stages import Batch, Stage1Loss, Stage2Loss
+
+CHECKPOINT = "checkpoint.pt"
+FINAL = "model.pt"
+METRICS = "metrics.jsonl"
+Progress = Callable[[int, int, dict], None]
+
+
+def _rank_world() -> tuple[int, int]:
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+class Trainer:
+    def __init__(self, cfg: TrainConfig, data: FrameSource, out_dir: str | os.PathLike, *, resume: bool = False,
+                 eval_data: Optional[FrameSource] = None, progress: Optional[Progress] = None,
+                 describe: Optional[dict] = None):
+        cfg.check()
+        self.cfg = cfg
+        self.data = data
+        self.eval_data = eval_data or data
+        self.out = Path(out_dir)
+        self.progress = progress
+        self.rank, self.world = _rank_world()
+        if torch.cuda.is_available():
+            self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(self.device)
+        else:
+            self.device = torch.device("cpu")
+        self.pre = Preprocessor()
+        if len(data) == 0:
+            raise InferenceError("no frame set has every camera the training needs")
+        if not data.supervision:
+            raise InferenceError("training needs supervision cameras besides the two sources")
+        self.train_index = list(range(0, len(data), cfg.frame_stride))
+        self.step = 0
+        self.model = build_model(cfg.model, seed=cfg.seed).train()
+        self._optim_state = None
+        if resume:
+            self._load(self.out / CHECKPOINT)
+        elif self.rank == 0:
+            _check_fresh(self.out)
+        self.model.to(self.device)
+        if self.rank == 0:
+            self.out.mkdir(parents=True, exist_ok=True)
+            (self.out / "samples").mkdir(exist_ok=True)
+            if not resume:
+                atomic_write_json(self.out / "train.json", {"config": cfg.to_dict(), **(describe or {})})
+            self._trim_metrics()
+
+    # -- state ------------------------------------------------------------------------------------
+
+    def _load(self, path: Path) -> None:
+        if not path.is_file():
+            raise InferenceError(f"{path}: no checkpoint to resume from")
+        try:
+            data = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises many types for torn or foreign files
+            raise InferenceError(f"{path}: not a readable checkpoint ({type(exc).__name__})") from None
+        if not isinstance(data, dict) or data.get("format") != FORMAT or "train" not in data:
+            raise InferenceError(f"{path}: not a training checkpoint")
+        saved = TrainConfig.from_dict(data["train"]["config"])
+        if saved.model.to_dict() != self.cfg.model.to_dict():
+            raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (train it with its own config, or start a new folder)")
+        self.model.load_state_dict(data["state_dict"])
+        self.step = int(data["train"]["step"])
+        self._optim_state = data["train"].get("optimizer")
+
+    def _save(self, path: Path, optimizer: Optional[torch.optim.Optimizer], final: bool = False) -> None:
+        if self.rank != 0:
+            return
+        meta = {"steps": self.step, "device": str(self.device), "stage1_steps": self.cfg.stage1.steps, "stage2_steps": self.cfg.stage2.steps}
+        data = {"format": FORMAT, "version": VERSION, "config": self.cfg.model.to_dict(),
+                "state_dict": {k: v.cpu() for k, v in self.model.state_dict().items()}, "meta": meta}
+        if not final:
+            data["train"] = {"config": self.cfg.to_dict(), "step": self.step,
+                             "optimizer": optimizer.state_dict() if optimizer is not None else None}
+        try:
+            with atomic_path(path, make_parents=True) as tmp:
+                torch.save(data, tmp)
+        except OSError as exc:
+            raise OutputError(f"{path}: cannot write the checkpoint ({exc.strerror or exc})") from None
+
+    def _trim_metrics(self) -> None:
+        """On resume: drop lines logged after the checkpoint (they will be logged again)."""
+        path = self.out / METRICS
+        if not path.exists():
+            return
+        keep = []
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if rec.get("step", 0) <= self.step:
+                keep.append(line)
+        with atomic_path(path) as tmp:
+            Path(tmp).write_text("".join(k + "\n" for k in keep))
+
+    def _log(self, rec: dict) -> None:
+        if self.rank != 0:
+            return
+        try:
+            with open(self.out / METRICS, "a") as f:
+                f.write(json.dumps(rec) + "\n")
+        except OSError as exc:
+            raise OutputError(f"{self.out / METRICS}: cannot write ({exc.strerror})") from None
+
+    # -- batches ----------------------------------------------------------------------------------
+
+    def _draw(self, stage: int, step: int, sched: StageSchedule) -> list[tuple[int, list[str]]]:
+        """The global batch of a step: (frame-set index, supervision cameras) per item."""
+        rng = np.random.default_rng([self.cfg.seed, stage, step])
+        sets = rng.choice(len(self.train_index), size=sched.batch, replace=len(self.train_index) < sched.batch)
+        k = min(self.cfg.supervision_per_step, len(self.data.supervision))
+        return [(self.train_index[int(s)], [self.data.supervision[int(j)] for j in rng.choice(len(self.data.supervision), k, replace=False)]) for s in sets]
+
+    def _batch(self, source: FrameSource, items: list[tuple[int, list[str]]], stage: int) -> Batch:
+        s = self.cfg.model.sizes
+        lefts, rights, targets, fines = [], [], [], []
+        for index, sup in items:
+            fs = source.frame_set(index)
+            lefts.append(self.pre.views(fs, [source.left], s.fine))
+            rights.append(self.pre.views(fs, [source.right], s.fine))
+            targets.append(self.pre.views(fs, sup, s.coarse if stage == 1 else s.output))
+            if stage == 2:
+                fines.append(self.pre.views(fs, sup, s.fine))
+        return Batch(stack_views(lefts, self.device), stack_views(rights, self.device), stack_views(targets, self.device),
+                     stack_views(fines, self.device) if fines else None, len(items[0][1]))
+
+    # -- loop -------------------------------------------------------------------------------------
+
+    def _lr(self, sched: StageSchedule, k: int) -> float:
+        if k < sched.warmup:
+            return sched.lr * (k + 1) / sched.warmup
+        t = (k - sched.warmup) / max(1, sched.steps - sched.warmup)
+        return sched.lr * (sched.final_lr + (1 - sched.final_lr) * 0.5 * (1 + math.cos(math.pi * min(1.0, t))))
+
+    def _stage_module(self, stage: int):
+        m = self.model
+        first = [m.point_init, m.affine_transform]
+        for p in m.parameters():
+            p.requires_grad_(False)
+        trainable = first if stage == 1 else [mod for mod in m.children() if all(mod is not f for f in first)]
+        for mod in trainable:
+            for p in mod.parameters():
+                p.requires_grad_(True)
+        w = self.cfg.loss
+        module = Stage1Loss(m, w, self.cfg.point_radius) if stage == 1 else Stage2Loss(m, w)
+        params = [p for p in m.parameters() if p.requires_grad]
+        if self.world > 1:
+            module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
+        return module, params
+
+    def run(self, stop_after: Optional[int] = None) -> dict:
+        """Train to the end of the schedule, or `stop_after` more steps (then checkpoint and return)."""
+        cfg = self.cfg
+        total = cfg.total_steps
+        stop_at = total if stop_after is None else min(total, self.step + stop_after)
+        started = time.monotonic()
+        last = {}
+        for stage, sched, offset in ((1, cfg.stage1, 0), (2, cfg.stage2, cfg.stage1.steps)):
+            if self.step >= offset + sched.steps or sched.steps == 0:
+                continue
+            module, params = self._stage_module(stage)
+            optimizer = torch.optim.AdamW(params, lr=sched.lr, weight_decay=1e-4)
+            if self._optim_state is not None and self.step > offset:
+                optimizer.load_state_dict(self._optim_state)
+            self._optim_state = None
+            while self.step < min(offset + sched.steps, stop_at):
+                k = self.step - offset
+                for g in optimizer.param_groups:
+                    g["lr"] = self._lr(sched, k)
+                items = self._draw(stage, k, sched)[self.rank::self.world]
+                t0 = time.perf_counter()
+                self.model.train()
+                loss, metrics, _ = module(self._batch(self.data, items, stage))
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                gnorm = torch.nn.utils.clip_grad_norm_(params, sched.grad_clip)
+                optimizer.step()
+                self.step += 1
+                metrics = _mean_over_ranks(metrics, self.world)
+                last = {"step": self.step, "stage": stage, "lr": optimizer.param_groups[0]["lr"], **metrics,
+                        "grad_norm": float(gnorm), "step_s": round(time.perf_counter() - t0, 4)}
+                self._log(last)
+                if self.progress is not None and self.rank == 0:
+                    self.progress(self.step, total, last)
+                end_of_stage = self.step == offset + sched.steps
+                if self.step % cfg.eval_every == 0 or end_of_stage:
+                    self.evaluate(stage)
+                if self.step % cfg.checkpoint_every == 0 or self.step % cfg.eval_every == 0 or end_of_stage or self.step == stop_at:
+                    self._save(self.out / CHECKPOINT, optimizer)
+            if self.step >= stop_at:
+                break
+        if self.step >= total:
+            self._save(self.out / FINAL, None, final=True)
+        if self.world > 1:
+            dist.barrier()
+        return {"steps": self.step, "wall_s": round(time.monotonic() - started, 1), "last": last, "out": str(self.out)}
+
+    @torch.no_grad()
+    def evaluate(self, stage: int) -> dict:
+        """Render held-out sets (evenly spread over the evaluation source) with the current stage."""
+        if self.rank != 0:
+            if self.world > 1:
+                dist.barrier()
+            return {}
+        self.model.eval()
+        n = len(self.eval_data)
+        picks = sorted({int(round(i * (n - 1) / max(1, self.cfg.eval_sets - 1))) for i in range(min(n, self.cfg.eval_sets))})
+        sup = self.eval_data.supervision
+        module = Stage1Loss(self.model, self.cfg.loss, self.cfg.point_radius) if stage == 1 else Stage2Loss(self.model, self.cfg.loss)
+        renders, truths, psnrs, losses = [], [], [], []
+        for j, index in enumerate(picks):
+            cam = sup[j % len(sup)]
+            _, metrics, images = module(self._batch(self.eval_data, [(index, [cam])], stage))
+            renders.append(images["render"][0])
+            truths.append(images["truth"][0])
+            psnrs.append(metrics["psnr"])
+            losses.append(metrics["loss"])
+        rec = {"step": self.step, "stage": stage, "eval": True, "psnr": float(np.mean(psnrs)), "loss": float(np.mean(losses))}
+        self._log(rec)
+        try:
+            save_samples(self.out / "samples" / f"step-{self.step:06d}.png", renders, truths)
+            save_loss_curve(self.out / METRICS, self.out / "loss.png")
+        except OSError as exc:
+            raise OutputError(f"{self.out}: cannot write the evaluation images ({exc.strerror})") from None
+        self.model.train()
+        if self.world > 1:
+            dist.barrier()
+        return rec
+
+
+def _mean_over_ranks(metrics: dict, world: int) -> dict:
+    if world == 1:
+        return metrics
+    keys = sorted(metrics)
+    t = torch.tensor([metrics[k] for k in keys], dtype=torch.float64)
+    dist.all_reduce(t)
+    return {k: float(v) / world for k, v in zip(keys, t)}
+
+
+def _check_fresh(out: Path) -> None:
+    if (out / CHECKPOINT).exists() or (out / METRICS).exists():
+        raise InferenceError(f"{out}: already holds a training run; pass --resume to continue it, or choose a new folder")

@@ -1,0 +1,175 @@
+"""`rig train`: train Splat-SAP on recorded or simulated sequences (both stages, self-supervised).
+
+Data-parallel: `rig train --nproc N ...` starts N processes on this machine through torchrun
+(gloo on CPU, NCCL on GPUs). For several machines run torchrun yourself on each, e.g.
+    torchrun --nnodes 2 --node-rank 0 --nproc-per-node 4 --rdzv-backend c10d \\
+        --rdzv-endpoint HOST:29500 -m rig train DATA -o OUT
+(docs/training.md). Every process reads the same sequences; process 0 writes the output folder.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from rig.errors import ConfigError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("train", help="train the model on recorded or simulated sequences",
+                       description="Train Splat-SAP self-supervised (stage 1: backbone + affine transform; stage 2: "
+                                   "depth refinement, colour blending, Gaussian plane) on one or more sequences.")
+    p.add_argument("sequences", nargs="+", type=Path,
+                   help="sequence folders (from rig record or rig sim dataset); a data-set folder stands for all its takes")
+    p.add_argument("-o", "--out", required=True, type=Path, help="output folder (new, or the run to continue with --resume)")
+    p.add_argument("--config", type=Path, help="training configuration (JSON, the keys of inference.train.config.TrainConfig)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--size", choices=("paper", "preview", "test"), help="model sizes (default preview)")
+    p.add_argument("--backbone", choices=("stereo", "tiny"), help="point-map backbone (default stereo)")
+    p.add_argument("--stage1-steps", type=int, help="stage-1 steps")
+    p.add_argument("--stage2-steps", type=int, help="stage-2 steps")
+    p.add_argument("--batch", type=int, help="frame sets per step in both stages (global batch)")
+    p.add_argument("--eval-every", type=int, help="steps between evaluations (sample PNG, loss curve)")
+    p.add_argument("--seed", type=int, help="seed of the initial weights and the batch order")
+    p.add_argument("--stop-after", type=int, help="train this many more steps, write the checkpoint and stop (continue with --resume)")
+    p.add_argument("--nproc", type=int, default=1, help="data-parallel processes on this machine (torchrun; default 1)")
+    p.add_argument("--threads", type=int, help="torch threads per process (default: cores / processes)")
+    p.add_argument("--json", action="store_true", help="print a summary as one JSON object at the end")
+    p.set_defaults(func=cmd_train)
+
+
+def expand_sequences(paths: list[Path]) -> list[Path]:
+    """A folder with dataset.json (rig sim dataset) stands for its takes."""
+    out = []
+    for p in paths:
+        listing = p / "dataset.json"
+        if listing.is_file():
+            try:
+                takes = json.loads(listing.read_text())["takes"]
+            except (OSError, ValueError, KeyError, TypeError):
+                raise ConfigError(f"{listing}: not a readable data-set listing") from None
+            out += [p / t for t in takes]
+        else:
+            out.append(p)
+    return out
+
+
+def build_config(args: argparse.Namespace):
+    from inference.config import ModelConfig, Sizes
+    from inference.train.config import TrainConfig
+
+    if args.config is not None:
+        try:
+            cfg = TrainConfig.from_dict(json.loads(args.config.read_text()))
+        except OSError as exc:
+            raise ConfigError(f"{args.config}: cannot read ({exc.strerror})") from None
+        except ValueError as exc:
+            raise ConfigError(f"{args.config}: not valid JSON ({exc})") from None
+    elif args.resume and (args.out / "train.json").is_file():
+        try:
+            cfg = TrainConfig.from_dict(json.loads((args.out / "train.json").read_text())["config"])
+        except (OSError, ValueError, KeyError, TypeError):
+            raise ConfigError(f"{args.out / 'train.json'}: not a readable training record; pass --config") from None
+    else:
+        cfg = TrainConfig()
+    if args.size or args.backbone:
+        sizes = Sizes.preset(args.size) if args.size else cfg.model.sizes
+        cfg.model = ModelConfig.for_backbone(args.backbone or cfg.model.backbone.kind, sizes)
+    for flag, (section, key) in {"stage1_steps": ("stage1", "steps"), "stage2_steps": ("stage2", "steps")}.items():
+        if getattr(args, flag) is not None:
+            setattr(getattr(cfg, section), key, getattr(args, flag))
+    if args.batch is not None:
+        cfg.stage1.batch = cfg.stage2.batch = args.batch
+    if args.eval_every is not None:
+        cfg.eval_every = args.eval_every
+    if args.seed is not None:
+        cfg.seed = args.seed
+    cfg.check()
+    return cfg
+
+
+def _relaunch(args: argparse.Namespace) -> int:
+    """Run this command again under torchrun with --nproc processes."""
+    argv = list(sys.argv[1:]) if sys.argv and Path(sys.argv[0]).name in ("rig", "__main__.py") else None
+    if argv is None or "train" not in argv:
+        raise ConfigError("--nproc needs the rig command line; run torchrun -m rig train ... yourself")
+    rest, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        if a == "--nproc":
+            skip = True
+            continue
+        if a.startswith("--nproc="):
+            continue
+        rest.append(a)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={args.nproc}", "-m", "rig", *rest]
+    return subprocess.call(cmd)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from rig.commands._output import emit_json
+    from rig.commands._paths import output_folder
+    from rig.storage.dataset import TrainingSet
+
+    if args.stop_after is not None and args.stop_after < 1:
+        raise ConfigError(f"--stop-after must be at least 1, got {args.stop_after}")
+    if args.nproc < 1:
+        raise ConfigError(f"--nproc must be at least 1, got {args.nproc}")
+    if args.threads is not None and args.threads < 1:
+        raise ConfigError(f"--threads must be at least 1, got {args.threads}")
+    # Everything a user can get wrong is checked before torch loads and before any work.
+    cfg = build_config(args)
+    out = output_folder(args.out)
+    if not args.resume and out.exists() and ((out / "checkpoint.pt").exists() or (out / "metrics.jsonl").exists()):
+        raise ConfigError(f"{out}: already holds a training run; pass --resume to continue it, or choose a new folder")
+    if args.resume and not (out / "checkpoint.pt").is_file():
+        raise ConfigError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
+    data = TrainingSet(expand_sequences(args.sequences))
+    if args.nproc > 1 and "WORLD_SIZE" not in os.environ:
+        return _relaunch(args)
+
+    import torch
+    import torch.distributed as dist
+
+    from inference.train.trainer import Trainer
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    torch.set_num_threads(args.threads or max(1, (os.cpu_count() or 1) // max(1, int(os.environ.get("LOCAL_WORLD_SIZE", world)))))
+    if world > 1:
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend)
+    bar = None
+    try:
+        if rank == 0 and not args.json:
+            from rig.progress import ProgressBar
+
+            bar = ProgressBar("training")
+
+        def progress(step: int, total: int, metrics: dict) -> None:
+            if bar is not None:
+                bar.update(step, total)
+
+        describe = {"sequences": [str(s.root) for s in data.sequences], "frame_sets": len(data),
+                    "sources": [data.left, data.right], "supervision": data.supervision, "processes": world}
+        trainer = Trainer(cfg, data, out, resume=args.resume, progress=progress, describe=describe)
+        summary = trainer.run(stop_after=args.stop_after)
+    finally:
+        if bar is not None:
+            bar.close()
+        if world > 1 and dist.is_initialized():
+            dist.destroy_process_group()
+    if rank == 0:
+        if args.json:
+            emit_json(summary)
+        else:
+            last = summary["last"]
+            print(f"trained {summary['steps']} steps in {summary['wall_s']} s -> {out}"
+                  + (f" (last: stage {last['stage']}, loss {last['loss']:.4f}, psnr {last['psnr']:.2f} dB)" if last else ""))
+            print(f"next: rig model export --checkpoint {out / 'model.pt'} -o model.onnx")
+    return 0

@@ -1,0 +1,153 @@
+"""`rig train`: a real (tiny) training run on simulator takes, resume, DDP, bad input."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from simulator.takes import write_take
+
+RIG = [sys.executable, "-m", "rig"]
+SMALL = ["--size", "test", "--batch", "2", "--eval-every", "3", "--threads", "1"]
+# One supervision view per frame set and one held-out set per evaluation: the smallest real run.
+LIGHT = {"supervision_per_step": 1, "eval_sets": 1}
+
+
+def rig(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run(RIG + [str(a) for a in args], capture_output=True, text=True, timeout=600, cwd=cwd, env=env)
+
+
+@pytest.fixture(scope="module")
+def takes(tmp_path_factory) -> list[Path]:
+    root = tmp_path_factory.mktemp("takes")
+    return [Path(write_take(root / f"take-{i}", seed=100 + i, seconds=0.4, fps=10, size=(320, 180))["out"]) for i in range(2)]
+
+
+@pytest.fixture(scope="module")
+def light(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("config") / "train.json"
+    path.write_text(json.dumps(LIGHT))
+    return path
+
+
+def metrics(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_train_runs_both_stages_and_resume_continues_the_same_loss_curve(takes, light, tmp_path):
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    args = [*SMALL, "--config", light, "--batch", "1", "--stage1-steps", "3", "--stage2-steps", "1"]
+    r = rig("train", *takes, "-o", whole, *args, "--json")
+    assert r.returncode == 0, r.stderr
+    check_outputs(whole, json.loads(r.stdout))
+    r = rig("train", *takes, "-o", parts, *args, "--stop-after", "2")
+    assert r.returncode == 0, r.stderr
+    assert [m["step"] for m in metrics(parts) if not m.get("eval")] == [1, 2]
+    assert not (parts / "model.pt").exists()
+    # Without --resume the run is refused and nothing is touched.
+    before = (parts / "checkpoint.pt").read_bytes()
+    r = rig("train", *takes, "-o", parts, *args)
+    assert r.returncode == 2 and "--resume" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert (parts / "checkpoint.pt").read_bytes() == before
+    r = rig("train", *takes, "-o", parts, *args, "--resume")
+    assert r.returncode == 0, r.stderr
+    a = [m for m in metrics(whole) if not m.get("eval")]
+    b = [m for m in metrics(parts) if not m.get("eval")]
+    assert [m["step"] for m in b] == [1, 2, 3, 4]
+    for x, y in zip(a, b):
+        assert y["loss"] == pytest.approx(x["loss"], rel=1e-5, abs=1e-7), (x, y)
+    wa = torch.load(whole / "model.pt", weights_only=True)["state_dict"]
+    wb = torch.load(parts / "model.pt", weights_only=True)["state_dict"]
+    assert max(float((wa[k] - wb[k]).abs().max()) for k in wa if wa[k].is_floating_point()) < 1e-5
+
+
+def test_two_gloo_processes_step_as_one_process_on_the_same_global_batch(takes, light, tmp_path):
+    one, two = tmp_path / "one", tmp_path / "two"
+    args = [*SMALL, "--config", light, "--stage1-steps", "2", "--stage2-steps", "1", "--eval-every", "100"]
+    r1 = rig("train", *takes, "-o", one, *args)
+    assert r1.returncode == 0, r1.stderr
+    r2 = rig("train", *takes, "-o", two, *args, "--nproc", "2")
+    assert r2.returncode == 0, r2.stderr[-2000:]
+    assert json.loads((two / "train.json").read_text())["processes"] == 2
+    w1 = torch.load(one / "model.pt", weights_only=True)["state_dict"]
+    w2 = torch.load(two / "model.pt", weights_only=True)["state_dict"]
+    diff = max(float((w1[k] - w2[k]).abs().max()) for k in w1 if w1[k].is_floating_point())
+    assert diff < 1e-5, diff
+    l1 = [m["loss"] for m in metrics(one) if not m.get("eval")]
+    l2 = [m["loss"] for m in metrics(two) if not m.get("eval")]
+    assert l2 == pytest.approx(l1, rel=1e-5)
+
+
+def check_outputs(out: Path, summary: dict) -> None:
+    """What a run of 3 + 1 steps with an evaluation every 3 steps leaves in its folder."""
+    assert summary["steps"] == 4
+    rows = metrics(out)
+    steps = [m for m in rows if not m.get("eval")]
+    assert [m["step"] for m in steps] == [1, 2, 3, 4]
+    assert [m["stage"] for m in steps] == [1, 1, 1, 2]
+    assert all(m["loss"] > 0 and "psnr" in m for m in steps)
+    assert "chamfer" in steps[0] and "fine" in steps[-1]
+    assert [m["step"] for m in rows if m.get("eval")] == [3, 4]  # every 3 steps and at the end of each stage
+    assert (out / "samples" / "step-000003.png").stat().st_size > 0
+    assert (out / "loss.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert saved["train"]["config"]["stage1"]["steps"] == 3 and saved["train"]["step"] == 4
+    # The trained model is a model checkpoint the export path reads; every trained part moved.
+    from inference.model.checkpoint import load_checkpoint
+    from inference.model.pipeline import build_model
+
+    model = load_checkpoint(out / "model.pt")
+    assert model.cfg.backbone.kind == "stereo"
+    init = build_model(model.cfg, seed=0).state_dict()
+    trained = model.state_dict()
+    moved = {k.split(".")[0] for k in trained if trained[k].is_floating_point() and not torch.equal(trained[k], init[k])}
+    assert {"point_init", "affine_transform", "depth_refine", "colour_init", "gaussian_plane"} <= moved, moved
+
+
+def one_line_exit_2(r: subprocess.CompletedProcess) -> None:
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+
+
+def test_a_sequence_without_supervision_cameras_is_refused(tmp_path):
+    take = Path(write_take(tmp_path / "pair", seed=7, seconds=0.1, fps=10, size=(320, 180), cameras=2)["out"])
+    r = rig("train", take, "-o", tmp_path / "run", *SMALL)
+    one_line_exit_2(r)
+    assert "supervision" in r.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_sequence_without_calibration_is_refused(takes, tmp_path):
+    import shutil
+
+    take = tmp_path / "uncalibrated"
+    shutil.copytree(takes[0], take)
+    meta = json.loads((take / "sequence.json").read_text())
+    del meta["simulator"]  # a recorded take: its cameras are known only from a calibration
+    (take / "sequence.json").write_text(json.dumps(meta))
+    r = rig("train", take, "-o", tmp_path / "run", *SMALL)
+    one_line_exit_2(r)
+    assert "calibrat" in r.stderr
+
+
+def test_a_checkpoint_of_another_configuration_is_refused_and_kept(takes, light, tmp_path):
+    out = tmp_path / "run"
+    r = rig("train", *takes, "-o", out, *SMALL, "--config", light, "--batch", "1", "--stage1-steps", "1", "--stage2-steps", "0")
+    assert r.returncode == 0, r.stderr
+    before = (out / "checkpoint.pt").read_bytes()
+    r = rig("train", *takes, "-o", out, "--size", "preview", "--resume")
+    one_line_exit_2(r)
+    assert "configuration" in r.stderr
+    assert (out / "checkpoint.pt").read_bytes() == before
+
+
+def test_an_unwritable_output_folder_is_refused_before_any_work(takes, tmp_path):
+    r = rig("train", *takes, "-o", "/proc/rig-train", *SMALL)
+    one_line_exit_2(r)
