@@ -12,7 +12,7 @@ demo: install
 	$(VENV)/bin/rig demo
 
 test: install
-	$(PY) -m pytest -q -p no:cacheprovider
+	$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile
 
 install: $(STAMP)
 

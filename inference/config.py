@@ -107,6 +107,11 @@ class Stage1Config:
     hidden_dim: int = 64  # ConvGRU state
     iterations: int = 4
     stride: int = 4  # the ConvGRU runs at 1/stride of the coarse size
+    # Bounds that keep training stable (an unbounded update once sent T to tens of metres, every point
+    # behind the cameras, and no gradient came back): each ConvGRU iteration moves T by at most
+    # translation_step baselines per axis (tanh), and log(S / baseline) stays within +-scale_log_range.
+    translation_step: float = 0.05
+    scale_log_range: float = 2.0
 
     def __post_init__(self) -> None:
         if self.affine not in ("learned", "bypass"):

@@ -3,13 +3,15 @@
 - Scaling S (3 values, shared by both views): an MLP on the averaged self-attention of the left
   view's tokens, the averaged cross-attention from left to right tokens (shared W^Q, W^K, W^V, the
   paper's Eq. 2) and a NeRF positional encoding of the focal lengths and the baseline.
-  The MLP's last layer starts at zero and S = baseline * exp(MLP): an untrained model scales a
+  The MLP's last layer starts at zero and S = baseline * exp(r tanh(MLP / r)) (r the
+  scale_log_range bound, exp(MLP) near zero): an untrained model scales a
   canonical point map (mean distance 1) by the baseline, the right order for a rig whose cameras
   stand about as far from the actors as from each other.
 - Translation T (per pixel): a RAFT-style ConvGRU at 1/stride of the coarse size. Each iteration
   projects the current points S X + T of view i into the other view j, samples j's features there
-  (4-D grid_sample), correlates them with i's, and updates T. Its output layer starts at zero, so
-  an untrained model leaves T = 0. Translations are predicted in units of the baseline.
+  (4-D grid_sample), correlates them with i's, and updates T by at most translation_step
+  baselines per axis (tanh). Its output layer starts at zero, so an untrained model leaves T = 0.
+  Translations are predicted in units of the baseline.
 """
 from __future__ import annotations
 
@@ -58,6 +60,7 @@ class ScaleHead(nn.Module):
         self.wk = nn.Linear(d, d)
         self.wv = nn.Linear(d, d)
         self.frequencies = cfg.pe_frequencies
+        self.log_range = cfg.scale_log_range
         pe_dim = 5 * (1 + 2 * cfg.pe_frequencies)
         self.mlp = nn.Sequential(
             nn.Linear(2 * d + pe_dim, cfg.mlp_hidden), nn.ReLU(), nn.Linear(cfg.mlp_hidden, cfg.mlp_hidden), nn.ReLU(), nn.Linear(cfg.mlp_hidden, 3)
@@ -84,7 +87,8 @@ class ScaleHead(nn.Module):
         f_c = self._attend(q_l, self.wk(f_r), self.wv(f_r)).mean(dim=1)
         # Focal lengths are normalised by the image width (resolution-free); the baseline enters as its log.
         e = positional_encoding(torch.cat([focal_left, focal_right, torch.log(baseline.clamp(min=1e-6))[:, None]], dim=1), self.frequencies)
-        return baseline[:, None] * torch.exp(self.mlp(torch.cat([f_s, f_c, e], dim=1)))
+        raw = self.mlp(torch.cat([f_s, f_c, e], dim=1))
+        return baseline[:, None] * torch.exp(self.log_range * torch.tanh(raw / self.log_range))
 
 
 class ConvGRU(nn.Module):
@@ -142,7 +146,7 @@ class TranslationGRU(nn.Module):
             corr = (sampled * feats).sum(dim=1, keepdim=True) * scale
             motion = self.motion(torch.cat([sampled * visible, corr * visible, x / unit, t / unit, visible], dim=1))
             net = self.gru(net, torch.cat([ctx, motion], dim=1))
-            t = t + self.delta(net) * unit
+            t = t + self.cfg.translation_step * torch.tanh(self.delta(net)) * unit
         return t
 
 

@@ -20,8 +20,9 @@ def register(subparsers) -> None:
     e = sub.add_parser("export", help="export the model to ONNX",
                        description="Export the pipeline to one ONNX file (opset 18+): inputs are the left and right images, "
                                    "their intrinsics and poses, and the target intrinsics and pose; outputs the novel view and its depth.")
-    e.add_argument("--backbone", choices=("tiny", "oracle"), default="tiny",
-                   help="point-map backbone: tiny (trainable) or oracle (ground-truth depth as extra inputs) (default tiny)")
+    e.add_argument("--backbone", choices=("stereo", "tiny", "oracle"), default="tiny",
+                   help="point-map backbone: stereo (calibrated plane sweep, trainable), tiny (two-view ViT, trainable) or "
+                        "oracle (ground-truth depth as extra inputs) (default tiny)")
     e.add_argument("--checkpoint", metavar="CKPT", help="trained weights (default: untrained, seeded initialisation)")
     e.add_argument("--size", choices=SIZES, default="paper",
                    help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: tiny (default paper; ignored with --checkpoint)")
@@ -52,7 +53,7 @@ def register(subparsers) -> None:
     b.add_argument("--size", default="preview",
                    help="size preset(s), comma-separated: preview, paper, test (default preview; e.g. preview,paper)")
     b.add_argument("--model", metavar="model.onnx", help="benchmark this exported model (default: export one at --size)")
-    b.add_argument("--backbone", choices=("tiny", "oracle"), default="tiny", help="backbone (default tiny)")
+    b.add_argument("--backbone", choices=("stereo", "tiny", "oracle"), default="tiny", help="backbone (default tiny)")
     b.add_argument("--checkpoint", metavar="CKPT", help="trained weights (default: untrained)")
     b.add_argument("--repeat", type=int, default=5, help="timed runs of each (default 5; medians are reported)")
     b.add_argument("--threads", type=int, help="CPU threads for both torch and ONNX Runtime (default: theirs)")

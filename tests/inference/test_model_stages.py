@@ -101,11 +101,30 @@ def test_translation_reads_the_other_view():
     pm, left, right, r2l = oracle_maps("canonical")
     torch.manual_seed(0)
     layer = AffineTransform(Stage1Config(iterations=2), pm.tokens_left.shape[-1], COARSE)
-    torch.nn.init.normal_(layer.translation.delta[-1].weight, std=0.01)
+    torch.nn.init.normal_(layer.translation.delta[-1].weight, std=0.2)  # tanh-bounded steps of 0.05 baselines
     a = layer(pm, t(left.K), t(right.K), r2l).translation_left
     pm.tokens_right = pm.tokens_right.flip(1)
     b = layer(pm, t(left.K), t(right.K), r2l).translation_left
-    assert (a - b).abs().max() > 1e-4  # measured 1.1e-3 (|T| up to 0.037)
+    assert (a - b).abs().max() > 1e-4
+
+
+def test_translation_and_scale_stay_bounded_whatever_the_weights():
+    """An unbounded update once sent T to tens of metres in training (every point behind the
+    cameras, no gradient back): T moves at most translation_step baselines per iteration and axis,
+    S stays within baseline * exp(+-scale_log_range)."""
+    pm, left, right, r2l = oracle_maps("canonical")
+    cfg = Stage1Config(iterations=3)
+    layer = AffineTransform(cfg, pm.tokens_left.shape[-1], COARSE)
+    with torch.no_grad():
+        layer.translation.delta[-1].bias.fill_(1e4)
+        layer.scale_head.mlp[-1].bias.copy_(torch.tensor([1e4, -1e4, 0.0]))
+    out = layer(pm, t(left.K), t(right.K), r2l)
+    baseline = float(np.linalg.norm(left.center - right.center))
+    bound = cfg.iterations * cfg.translation_step * baseline
+    assert out.translation_left.abs().max() <= bound * (1 + 1e-5)
+    assert out.translation_left.abs().max() >= 0.99 * bound  # saturated, not clipped elsewhere
+    s = out.scale[0] / baseline
+    assert torch.allclose(torch.log(s), torch.tensor([cfg.scale_log_range, -cfg.scale_log_range, 0.0]), atol=1e-4)
 
 
 def two_views_of_a_plane(size=(96, 64)):
