@@ -44,7 +44,8 @@ def save_checkpoint(model: SplatSAP, path: str | os.PathLike, meta: dict | None 
     return path
 
 
-def load_checkpoint(path: str | os.PathLike) -> SplatSAP:
+def read_checkpoint(path: str | os.PathLike) -> dict:
+    """The checkpoint file's contents (tensors on the CPU), checked to be a Splat-SAP checkpoint of this version."""
     path = Path(path)
     if not path.is_file():
         raise InferenceError(f"{path}: no such checkpoint")
@@ -56,6 +57,12 @@ def load_checkpoint(path: str | os.PathLike) -> SplatSAP:
         raise InferenceError(f"{path}: not a Splat-SAP checkpoint")
     if data.get("version") != VERSION:
         raise InferenceError(f"{path}: checkpoint version {data.get('version')!r} is not supported (this program reads {VERSION})")
+    return data
+
+
+def load_checkpoint(path: str | os.PathLike) -> SplatSAP:
+    path = Path(path)
+    data = read_checkpoint(path)
     cfg = ModelConfig.from_dict(data["config"])
     model = build_model(cfg, seed=None)
     missing, unexpected = model.load_state_dict(data["state_dict"], strict=False)

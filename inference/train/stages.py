@@ -72,6 +72,7 @@ class Stage1Loss(nn.Module):
         self.model = model
         self.w = weights
         self.splat = PointSplatConfig(radius=point_radius)
+        self.gamma = weights.gamma  # the trainer sets it per step (TrainConfig.gamma_at)
 
     def forward(self, batch: Batch) -> tuple[torch.Tensor, dict[str, float], dict]:
         m = self.model
@@ -86,17 +87,21 @@ class Stage1Loss(nn.Module):
         render = splat_points(_expand(pts, n), _expand(cols, n), _expand(ops, n), to_target, batch.targets.K, (cw, ch), self.splat)
         l_render = rendering_loss(render.image, batch.targets.images, self.w.beta_l1, self.w.beta_ssim)
         # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
-        with torch.no_grad():
-            l2r = relative_pose(batch.right.poses, batch.left.poses)
-            w_l = _overlap(affine.points_left, l2r, kr, (cw, ch)).reshape(b, -1)
-            w_r = _overlap(affine.points_right, torch.eye(4, dtype=kl.dtype, device=kl.device).expand(b, 4, 4), kl, (cw, ch)).reshape(b, -1)
-            w_l = (w_l > 0.5).to(kl.dtype)
-            w_r = (w_r > 0.5).to(kl.dtype)
-        cd = chamfer_6d(point_colour_set(affine.points_left, left_c), point_colour_set(affine.points_right, right_c), w_l, w_r)
-        loss = l_render + self.w.gamma * cd
+        loss = l_render
+        cd = None
+        if self.gamma > 0:
+            with torch.no_grad():
+                l2r = relative_pose(batch.right.poses, batch.left.poses)
+                w_l = _overlap(affine.points_left, l2r, kr, (cw, ch)).reshape(b, -1)
+                w_r = _overlap(affine.points_right, torch.eye(4, dtype=kl.dtype, device=kl.device).expand(b, 4, 4), kl, (cw, ch)).reshape(b, -1)
+                w_l = (w_l > 0.5).to(kl.dtype)
+                w_r = (w_r > 0.5).to(kl.dtype)
+            cd = chamfer_6d(point_colour_set(affine.points_left, left_c), point_colour_set(affine.points_right, right_c), w_l, w_r)
+            loss = loss + self.gamma * cd
         with torch.no_grad():
             mse = ((render.image - batch.targets.images) ** 2).mean()
-            metrics = {"loss": float(loss), "render": float(l_render), "chamfer": float(cd),
+            metrics = {"loss": float(loss), "render": float(l_render), "gamma": self.gamma,
+                       **({"chamfer": float(cd)} if cd is not None else {}),
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
                        "coverage": float(render.alpha.mean())}
         return loss, metrics, {"render": render.image.detach(), "truth": batch.targets.images}

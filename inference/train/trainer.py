@@ -30,7 +30,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from common.files import atomic_path, atomic_write_json
 from inference.errors import InferenceError, OutputError
-from inference.model.checkpoint import FORMAT, VERSION
+from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
 from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import StageSchedule, TrainConfig
 from inference.train.data import FrameSource, Preprocessor, stack_views
@@ -91,12 +91,9 @@ class Trainer:
     def _load(self, path: Path) -> None:
         if not path.is_file():
             raise InferenceError(f"{path}: no checkpoint to resume from")
-        try:
-            data = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # torch raises many types for torn or foreign files
-            raise InferenceError(f"{path}: not a readable checkpoint ({type(exc).__name__})") from None
-        if not isinstance(data, dict) or data.get("format") != FORMAT or "train" not in data:
-            raise InferenceError(f"{path}: not a training checkpoint")
+        data = read_checkpoint(path)
+        if "train" not in data:
+            raise InferenceError(f"{path}: not a training checkpoint (a finished model; start a new run from scratch)")
         saved = TrainConfig.from_dict(data["train"]["config"])
         if saved.model.to_dict() != self.cfg.model.to_dict():
             raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (train it with its own config, or start a new folder)")
@@ -210,6 +207,8 @@ class Trainer:
                 for g in optimizer.param_groups:
                     g["lr"] = self._lr(sched, k)
                 items = self._draw(stage, k, sched)[self.rank::self.world]
+                if stage == 1:
+                    (module.module if self.world > 1 else module).gamma = cfg.gamma_at(k)
                 t0 = time.perf_counter()
                 self.model.train()
                 loss, metrics, _ = module(self._batch(self.data, items, stage))

@@ -92,7 +92,9 @@ def check_outputs(out: Path, summary: dict) -> None:
     assert [m["step"] for m in steps] == [1, 2, 3, 4]
     assert [m["stage"] for m in steps] == [1, 1, 1, 2]
     assert all(m["loss"] > 0 and "psnr" in m for m in steps)
-    assert "chamfer" in steps[0] and "fine" in steps[-1]
+    # The Chamfer term ramps in from the middle of stage 1 (TrainConfig.chamfer_start): the third step has it.
+    assert [m["gamma"] for m in steps[:3]] == [0.0, 0.0, 0.5] and "chamfer" in steps[2] and "chamfer" not in steps[0]
+    assert "fine" in steps[-1]
     assert [m["step"] for m in rows if m.get("eval")] == [3, 4]  # every 3 steps and at the end of each stage
     assert (out / "samples" / "step-000003.png").stat().st_size > 0
     assert (out / "loss.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
