@@ -48,6 +48,21 @@ def oracle_twin(model: SplatSAP) -> SplatSAP:
     return twin.eval()
 
 
+def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int]) -> list[float]:
+    """AbsRel of stage 1's depth in each source against ground truth (coarse, pinhole), over the
+    pixels the other source also sees. One figure per source that has such pixels."""
+    cams = {c: pinhole(fs.cameras[c], coarse) for c in (source.left, source.right)}
+    pred_l = affine.points_left[0, 2].detach().cpu().numpy()
+    to_right = relative_pose(R.poses, L.poses)
+    pred_r = transform_points(to_right, affine.points_right)[0, 2].detach().cpu().numpy()
+    out = []
+    for c, other, pred in ((source.left, source.right, pred_l), (source.right, source.left, pred_r)):
+        seen = covisibility(cams[c], gt_coarse[c], [(cams[other], gt_coarse[other])])
+        if seen.any():
+            out.append(float(np.mean(np.abs(pred[seen] - gt_coarse[c][seen]) / gt_coarse[c][seen])))
+    return out
+
+
 @dataclass
 class _Scores:
     psnr: list
@@ -98,15 +113,8 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         have_depth = all(fs.depth.get(c) is not None for c in (source.left, source.right))
         gt_coarse = {}
         if have_depth:
-            cams = {c: pinhole(fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
-            gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in cams}
-            pred_l = affine.points_left[0, 2].cpu().numpy()
-            to_right = relative_pose(R.poses, L.poses)
-            pred_r = transform_points(to_right, affine.points_right)[0, 2].cpu().numpy()
-            for c, other, pred in ((source.left, source.right, pred_l), (source.right, source.left, pred_r)):
-                seen = covisibility(cams[c], gt_coarse[c], [(cams[other], gt_coarse[other])])
-                if seen.any():
-                    absrel.append(float(np.mean(np.abs(pred[seen] - gt_coarse[c][seen]) / gt_coarse[c][seen])))
+            gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
+            absrel += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
         for sup in source.supervision:
             T = pre.views(fs, [sup], sizes.output)
             mask = None

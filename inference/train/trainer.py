@@ -237,6 +237,25 @@ class Trainer:
         return {"steps": self.step, "wall_s": round(time.monotonic() - started, 1), "last": last, "out": str(self.out)}
 
     @torch.no_grad()
+    def _depth_absrel(self, picks: list[int]) -> Optional[float]:
+        """Stage 1's depth AbsRel on held-out sets where the source has ground truth (simulator takes);
+        monitoring only, no loss reads it."""
+        from inference.evaluate.model_eval import stage1_absrel
+        from inference.train.stages import stage1_forward
+
+        src, sizes, figures = self.eval_data, self.cfg.model.sizes, []
+        for index in picks:
+            fs = src.frame_set(index, with_truth=True)
+            if fs.depth.get(src.left) is None or fs.depth.get(src.right) is None:
+                return None
+            L = self.pre.views(fs, [src.left], sizes.fine)
+            R = self.pre.views(fs, [src.right], sizes.fine)
+            *_, affine = stage1_forward(self.model, stack_views([L], self.device), stack_views([R], self.device))
+            gt = {c: self.pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (src.left, src.right)}
+            figures += stage1_absrel(affine, L, R, fs, src, gt, sizes.coarse)
+        return float(np.mean(figures)) if figures else None
+
+    @torch.no_grad()
     def evaluate(self, stage: int) -> dict:
         """Render held-out sets (evenly spread over the evaluation source) with the current stage."""
         if self.rank != 0:
@@ -257,6 +276,9 @@ class Trainer:
             psnrs.append(metrics["psnr"])
             losses.append(metrics["loss"])
         rec = {"step": self.step, "stage": stage, "eval": True, "psnr": float(np.mean(psnrs)), "loss": float(np.mean(losses))}
+        absrel = self._depth_absrel(picks)
+        if absrel is not None:
+            rec["depth_absrel"] = absrel
         self._log(rec)
         try:
             save_samples(self.out / "samples" / f"step-{self.step:06d}.png", renders, truths)

@@ -95,7 +95,9 @@ def check_outputs(out: Path, summary: dict) -> None:
     # The Chamfer term ramps in from the middle of stage 1 (TrainConfig.chamfer_start): the third step has it.
     assert [m["gamma"] for m in steps[:3]] == [0.0, 0.0, 0.5] and "chamfer" in steps[2] and "chamfer" not in steps[0]
     assert "fine" in steps[-1]
-    assert [m["step"] for m in rows if m.get("eval")] == [3, 4]  # every 3 steps and at the end of each stage
+    evals = [m for m in rows if m.get("eval")]
+    assert [m["step"] for m in evals] == [3, 4]  # every 3 steps and at the end of each stage
+    assert all(0 < m["depth_absrel"] < 10 for m in evals)  # simulator takes: stage 1's depth is monitored
     assert (out / "samples" / "step-000003.png").stat().st_size > 0
     assert (out / "loss.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     saved = torch.load(out / "checkpoint.pt", weights_only=True)
