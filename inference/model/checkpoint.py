@@ -90,6 +90,13 @@ def model_from_record(cfg: ModelConfig, record: str, checkpoint: str | os.PathLi
         return build_model(cfg, seed=int(rec.get("seed", 0)))
     if checkpoint is None and rec.get("source") == "checkpoint":
         checkpoint = rec.get("path")
+        if (not checkpoint or not Path(checkpoint).is_file()) and rec.get("sha256"):
+            # Exported on another machine: the shipped checkpoint, if it is the one (same digest).
+            from inference.runtime.shipped import MODELS, NAME
+
+            shipped = MODELS / f"{NAME}.pt"
+            if shipped.is_file() and file_digest(shipped) == rec["sha256"]:
+                checkpoint = str(shipped)
         if not checkpoint or not Path(checkpoint).is_file():
             raise InferenceError(f"the model was exported from checkpoint {checkpoint}, which is not here: pass --checkpoint")
     if checkpoint is None:

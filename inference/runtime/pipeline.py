@@ -138,7 +138,12 @@ def open_session(path: str | os.PathLike, providers: list[str] | None = None, th
 class NovelViewPipeline:
     """Two synced frames + calibration + a viewpoint in, a novel view and its depth out."""
 
-    def __init__(self, path: str | os.PathLike, providers: list[str] | None = None, threads: int | None = None):
+    def __init__(self, path: str | os.PathLike | None = None, providers: list[str] | None = None, threads: int | None = None):
+        """`path`: an exported model; None: the shipped trained model (inference.runtime.shipped)."""
+        if path is None:
+            from inference.runtime.shipped import shipped_onnx
+
+            path = shipped_onnx()
         self.path = Path(path)
         self.session = open_session(self.path, providers, threads)
         self.info = read_model_info(self.session, self.path)

@@ -6,7 +6,10 @@
    holds it at stations through the volume), `rig calibrate run`, its warnings, and how far the result
    is from the simulator's exact cameras;
 3. record a take of the people in the scene, in sync, with the calibration;
-4. validate the take and say where it is, how much disk it took and what to do next.
+4. validate the take;
+5. render novel views of the take with the shipped trained model (ONNX Runtime, the live path) in
+   place of every supervision camera, against what that camera recorded; say where everything is,
+   how much disk it took and what to do next.
 Each step is the same command a user runs on a real rig (printed as it runs). Every argument, the
 output folder and the free disk space are checked before any of it starts.
 """
@@ -116,6 +119,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from calibration.compare import describe, errors_against_truth
     from rig.cameras.sim import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.config import dump_config, parse_config
+    from rig.commands._demo_views import render_novel_views
     from simulator.calibration_session import CalibrationSession
 
     _check_arguments(args)
@@ -135,12 +139,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     rig_file.write_text(dump_config(cfg))
     board_file = out / "board.toml"
     board_file.write_text(board_toml(SIM_RIG_BOARD))
-    print(f"1/4  simulated rig: {args.cameras} cameras at {args.width}x{args.height}, emulated trigger board  ->  {rig_file}")
+    print(f"1/5  simulated rig: {args.cameras} cameras at {args.width}x{args.height}, emulated trigger board  ->  {rig_file}")
     print(f"     the demo writes about {_mb(estimate['total'])} into {out} (take {_mb(estimate['take'])}, "
           f"calibration views {_mb(estimate['calibration_views'])})")
 
     # 2. calibration
-    print(f"2/4  calibrating: {session.describe()}")
+    print(f"2/5  calibrating: {session.describe()}")
     views_dir = out / "calibration-views"
     cap = _run(["calibrate", "capture", "-c", str(rig_file), "--board", str(board_file), "-o", str(views_dir), "--views", str(views)])
     calib_file = out / "calibration.json"
@@ -164,15 +168,29 @@ def cmd_demo(args: argparse.Namespace) -> int:
     data["rig"]["calibration"] = calib_file.name
     rig_file.write_text(dump_config(parse_config(data)))
     take = out / "take"
-    print(f"3/4  recording {args.seconds:g} s of the scene in sync")
+    print(f"3/5  recording {args.seconds:g} s of the scene in sync")
     rec = _run(["record", "-c", str(rig_file), "-o", str(take), "--seconds", str(args.seconds)])
     print(f"     {rec['sets']} sets ({rec['complete_sets']} complete), frames lost {sum(rec['frames_lost'].values())}, "
           f"{rec['mb_per_s']:.1f} MB/s")
 
     # 4. validation
     val = _run(["record", "validate", str(take)])
-    print(f"4/4  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
+    print(f"4/5  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
           f"skew p99 {val['skew_us'].get('p99', 0):.0f} us, calibrated: {val['calibrated']}")
+    novel = out / "novel-views"
+    try:
+        from inference.errors import InferenceError
+
+        nv = render_novel_views(take, novel)
+    except InferenceError as exc:  # an installation without the shipped model
+        nv = {"skipped": str(exc)}
+    if "skipped" in nv:
+        print(f"5/5  novel views: skipped: {nv['skipped']}")
+    else:
+        print(f"5/5  novel views by the shipped model ({nv['model']}): {nv['views']} views of {', '.join(nv['cameras'])} "
+              f"from left + right, {nv['ms_per_view']:.0f} ms each")
+        print(f"     PSNR against the real cameras {nv['psnr']:.2f} dB (the nearer source as it is: {nv['nearer_source_psnr']:.2f} dB); "
+              f"PNGs (novel | real) in {novel}/")
     print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")
     print(f"disk: {_mb(_written(out))} written into {out} (take {_mb(_written(take))}, calibration views {_mb(_written(views_dir))})")
     print(f"next: `rig record validate {take}`; read it for training with rig.storage.dataset.Sequence('{take}');"

@@ -20,10 +20,11 @@ def register(subparsers) -> None:
     e = sub.add_parser("export", help="export the model to ONNX",
                        description="Export the pipeline to one ONNX file (opset 18+): inputs are the left and right images, "
                                    "their intrinsics and poses, and the target intrinsics and pose; outputs the novel view and its depth.")
-    e.add_argument("--backbone", choices=("stereo", "tiny", "oracle"), default="tiny",
-                   help="point-map backbone: stereo (calibrated plane sweep, trainable), tiny (two-view ViT, trainable) or "
-                        "oracle (ground-truth depth as extra inputs) (default tiny)")
-    e.add_argument("--checkpoint", metavar="CKPT", help="trained weights (default: untrained, seeded initialisation)")
+    e.add_argument("--backbone", choices=("stereo", "tiny", "oracle"),
+                   help="export an untrained model (seeded initialisation) with this point-map backbone: stereo (calibrated "
+                        "plane sweep), tiny (two-view ViT) or oracle (ground-truth depth as extra inputs)")
+    e.add_argument("--checkpoint", metavar="CKPT",
+                   help="trained weights, e.g. from rig train (default, without --backbone: the shipped model, models/)")
     e.add_argument("--size", choices=SIZES, default="paper",
                    help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: tiny (default paper; ignored with --checkpoint)")
     e.add_argument("--fp16", action="store_true", help="also write MODEL.fp16.onnx (learned layers in float16, for GPUs)")
@@ -102,9 +103,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     from rig.commands._output import emit_json
 
     status = _status()
+    if args.checkpoint is None and args.backbone is None:
+        from inference.runtime.shipped import shipped_checkpoint
+
+        args.checkpoint = str(shipped_checkpoint())
     if args.checkpoint:
         model = load_checkpoint(args.checkpoint)
-        if model.cfg.backbone.kind != args.backbone:
+        if args.backbone is not None and model.cfg.backbone.kind != args.backbone:
             raise InferenceError(f"{args.checkpoint}: the checkpoint has the {model.cfg.backbone.kind} backbone, not {args.backbone}")
         weights = checkpoint_record(args.checkpoint)
         trained = True

@@ -24,7 +24,7 @@ def test_demo_calibrates_records_and_validates_a_two_camera_rig(tmp_path):
     out = tmp_path / "demo"
     proc = run_rig("demo", "-o", out, "--cameras", 2, "--seconds", 0.5, "--views", 12, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "4/4  validated: readable" in proc.stdout and "calibrated: True" in proc.stdout
+    assert "4/5  validated: readable" in proc.stdout and "calibrated: True" in proc.stdout
     # The calibration report's warnings are shown (12 views are too few to trust the intrinsics),
     # and the result is compared with the simulator's exact cameras.
     assert "warning: camera 'left': only" in proc.stdout

@@ -1,0 +1,29 @@
+"""Where the trained model that ships with the product lives (models/ at the top of the source tree).
+
+`models/splat-sap-preview.pt` is the checkpoint `rig train` wrote, `models/splat-sap-preview.onnx`
+its export; `models/MODEL_CARD.md` says how it was trained and what it scores. The runtime, `rig
+model export` and the demo use them when no model is named. Standard library only (the live path).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from inference.errors import InferenceError
+
+MODELS = Path(__file__).resolve().parents[2] / "models"
+NAME = "splat-sap-preview"
+
+
+def shipped_checkpoint() -> Path:
+    return _existing(MODELS / f"{NAME}.pt")
+
+
+def shipped_onnx() -> Path:
+    return _existing(MODELS / f"{NAME}.onnx")
+
+
+def _existing(path: Path) -> Path:
+    if not path.is_file():
+        raise InferenceError(f"{path}: the shipped model is missing from this installation; name a model "
+                             f"(`rig model export --checkpoint CKPT -o model.onnx`, from `rig train`)")
+    return path
