@@ -57,6 +57,11 @@ class TrainConfig:
     chamfer_start: float = 0.5
     chamfer_ramp: float = 0.1
     point_radius: int = 1  # stage-1 point splat window half-size (target pixels)
+    # Stage 1's rendering loss is the mean over these downscales of the coarse size (1 = the coarse
+    # size itself). A splatted point's gradient reaches only the pixels its kernel covers; at 1/2 and
+    # 1/4 the same kernel spans 2 and 4 times the distance, so a point map that is off by more than a
+    # pixel or two still learns which way to move (monodepth and self-supervised MVS use the same trick).
+    render_scales: tuple[int, ...] = (1, 2, 4)
     frame_stride: int = 1  # use every k-th set of each sequence for training
     eval_every: int = 200  # steps between evaluations (sample PNG, loss curve, held-out PSNR)
     eval_sets: int = 4  # held-out frame sets rendered at each evaluation
@@ -70,6 +75,8 @@ class TrainConfig:
             raise InferenceError("the oracle backbone reads ground-truth depth: it cannot be trained self-supervised")
         if not (0 <= self.chamfer_start <= 1 and 0 <= self.chamfer_ramp <= 1):
             raise InferenceError("chamfer_start and chamfer_ramp are fractions of stage 1, from 0 to 1")
+        if not self.render_scales or any(not isinstance(v, int) or v < 1 for v in self.render_scales):
+            raise InferenceError(f"render_scales must be integers >= 1, got {self.render_scales!r}")
         for name in ("supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
@@ -120,6 +127,10 @@ def _build(cls, d: dict, where: str):
             if not isinstance(value, dict):
                 raise InferenceError(f"{where}.{name}: expected a table")
             kwargs[name] = _build(type(current), value, f"{where}.{name}")
+        elif isinstance(current, tuple):
+            if not isinstance(value, (list, tuple)):
+                raise InferenceError(f"{where}.{name}: expected a list, got {value!r}")
+            kwargs[name] = tuple(value)
         elif isinstance(current, bool) or not isinstance(current, (int, float)):
             kwargs[name] = value
         elif isinstance(current, int) and not isinstance(value, int):

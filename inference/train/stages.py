@@ -67,11 +67,12 @@ def _overlap(points: torch.Tensor, to_other: torch.Tensor, K: torch.Tensor, size
 
 
 class Stage1Loss(nn.Module):
-    def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1):
+    def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1, render_scales: tuple[int, ...] = (1,)):
         super().__init__()
         self.model = model
         self.w = weights
         self.splat = PointSplatConfig(radius=point_radius)
+        self.scales = tuple(render_scales)
         self.gamma = weights.gamma  # the trainer sets it per step (TrainConfig.gamma_at)
 
     def forward(self, batch: Batch) -> tuple[torch.Tensor, dict[str, float], dict]:
@@ -84,8 +85,16 @@ class Stage1Loss(nn.Module):
         cols = torch.cat([left_c.flatten(2), right_c.flatten(2)], dim=2)
         ops = torch.cat([confidence_to_opacity(pm.conf_left).flatten(2), confidence_to_opacity(pm.conf_right).flatten(2)], dim=2)
         to_target = relative_pose(batch.targets.poses, _expand(batch.left.poses, n))
-        render = splat_points(_expand(pts, n), _expand(cols, n), _expand(ops, n), to_target, batch.targets.K, (cw, ch), self.splat)
-        l_render = rendering_loss(render.image, batch.targets.images, self.w.beta_l1, self.w.beta_ssim)
+        args = (_expand(pts, n), _expand(cols, n), _expand(ops, n), to_target)
+        render = None
+        l_render = 0.0
+        for k in self.scales:
+            size = (cw // k, ch // k)
+            truth = batch.targets.images if k == 1 else F.avg_pool2d(batch.targets.images, k)
+            r = splat_points(*args, resize_intrinsics(batch.targets.K, (cw, ch), size), size, self.splat)
+            l_render = l_render + rendering_loss(r.image, truth, self.w.beta_l1, self.w.beta_ssim) / len(self.scales)
+            if k == self.scales[0]:
+                render, render_truth = r, truth
         # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
         loss = l_render
         cd = None
@@ -99,12 +108,12 @@ class Stage1Loss(nn.Module):
             cd = chamfer_6d(point_colour_set(affine.points_left, left_c), point_colour_set(affine.points_right, right_c), w_l, w_r)
             loss = loss + self.gamma * cd
         with torch.no_grad():
-            mse = ((render.image - batch.targets.images) ** 2).mean()
+            mse = ((render.image - render_truth) ** 2).mean()
             metrics = {"loss": float(loss), "render": float(l_render), "gamma": self.gamma,
                        **({"chamfer": float(cd)} if cd is not None else {}),
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
                        "coverage": float(render.alpha.mean())}
-        return loss, metrics, {"render": render.image.detach(), "truth": batch.targets.images}
+        return loss, metrics, {"render": render.image.detach(), "truth": render_truth}
 
 
 class Stage2Loss(nn.Module):

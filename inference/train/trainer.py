@@ -181,7 +181,7 @@ class Trainer:
             for p in mod.parameters():
                 p.requires_grad_(True)
         w = self.cfg.loss
-        module = Stage1Loss(m, w, self.cfg.point_radius) if stage == 1 else Stage2Loss(m, w)
+        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales) if stage == 1 else Stage2Loss(m, w)
         params = [p for p in m.parameters() if p.requires_grad]
         if self.world > 1:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
@@ -266,7 +266,7 @@ class Trainer:
         n = len(self.eval_data)
         picks = sorted({int(round(i * (n - 1) / max(1, self.cfg.eval_sets - 1))) for i in range(min(n, self.cfg.eval_sets))})
         sup = self.eval_data.supervision
-        module = Stage1Loss(self.model, self.cfg.loss, self.cfg.point_radius) if stage == 1 else Stage2Loss(self.model, self.cfg.loss)
+        module = Stage1Loss(self.model, self.cfg.loss, self.cfg.point_radius, (1,)) if stage == 1 else Stage2Loss(self.model, self.cfg.loss)
         renders, truths, psnrs, losses = [], [], [], []
         for j, index in enumerate(picks):
             cam = sup[j % len(sup)]
