@@ -65,7 +65,8 @@ def main() -> int:
             for stage in (1, 2):
                 t = times[stage][args.warmup:]
                 results.append({"size": preset, "sizes": Sizes.preset(preset).describe(), "stage": stage,
-                                "batch": getattr(cfg, f"stage{stage}").batch, "supervision_per_step": cfg.supervision_per_step,
+                                "batch": getattr(cfg, f"stage{stage}").batch,
+                                "views": getattr(cfg, f"stage{stage}").views or cfg.supervision_per_step,
                                 "ms_median": round(1000 * statistics.median(t), 1), "ms_min": round(1000 * min(t), 1),
                                 "steps": len(t), "device": device, "threads": torch.get_num_threads()})
     if args.json:
@@ -73,7 +74,7 @@ def main() -> int:
     else:
         for r in results:
             print(f"{r['size']:8s} stage {r['stage']}: {r['ms_median']:8.1f} ms/step median ({r['ms_min']:.1f} min) over {r['steps']} steps, "
-                  f"batch {r['batch']} x {r['supervision_per_step']} supervision views, {r['device']}, {r['threads']} threads")
+                  f"batch {r['batch']} x {r['views']} supervision views, {r['device']}, {r['threads']} threads")
     return 0
 
 

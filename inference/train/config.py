@@ -23,12 +23,15 @@ class StageSchedule:
     warmup: int = 50  # linear learning-rate warm-up steps, then cosine decay to lr * final_lr
     final_lr: float = 0.1
     grad_clip: float = 1.0
+    views: int = 0  # supervision views rendered per frame set in a step (0: TrainConfig.supervision_per_step)
 
     def check(self, where: str) -> None:
         if not isinstance(self.steps, int) or self.steps < 0:
             raise InferenceError(f"{where}.steps must be an integer >= 0, got {self.steps!r}")
         if not isinstance(self.batch, int) or self.batch < 1:
             raise InferenceError(f"{where}.batch must be an integer >= 1, got {self.batch!r}")
+        if not isinstance(self.views, int) or self.views < 0:
+            raise InferenceError(f"{where}.views must be an integer >= 0, got {self.views!r}")
         if not self.lr > 0:
             raise InferenceError(f"{where}.lr must be positive, got {self.lr!r}")
 
@@ -46,9 +49,10 @@ class LossWeights:
 class TrainConfig:
     model: ModelConfig = field(default_factory=lambda: ModelConfig.for_backbone("stereo", Sizes.preset("preview")))
     stage1: StageSchedule = field(default_factory=lambda: StageSchedule(steps=2000, lr=3e-4, batch=2))
-    stage2: StageSchedule = field(default_factory=lambda: StageSchedule(steps=1000, lr=2e-4, batch=1))
+    # Stage 2 renders the whole pipeline per view (about 5 s a view at the preview size on 2 CPU cores): one view per step.
+    stage2: StageSchedule = field(default_factory=lambda: StageSchedule(steps=1000, lr=2e-4, batch=1, views=1))
     loss: LossWeights = field(default_factory=LossWeights)
-    supervision_per_step: int = 2  # supervision cameras rendered per frame set in a step
+    supervision_per_step: int = 2  # supervision cameras rendered per frame set in a step (a stage's `views` overrides it)
     # The Chamfer regulariser's weight ramps from 0 to gamma between these fractions of stage 1. The
     # paper starts from MASt3R's pretrained point maps, whose two views already agree; from scratch,
     # the Chamfer's pull between two wrong point maps drags both towards each other (nearer, flatter:

@@ -147,7 +147,7 @@ class Trainer:
         """The global batch of a step: (frame-set index, supervision cameras) per item."""
         rng = np.random.default_rng([self.cfg.seed, stage, step])
         sets = rng.choice(len(self.train_index), size=sched.batch, replace=len(self.train_index) < sched.batch)
-        k = min(self.cfg.supervision_per_step, len(self.data.supervision))
+        k = min(sched.views or self.cfg.supervision_per_step, len(self.data.supervision))
         return [(self.train_index[int(s)], [self.data.supervision[int(j)] for j in rng.choice(len(self.data.supervision), k, replace=False)]) for s in sets]
 
     def _batch(self, source: FrameSource, items: list[tuple[int, list[str]]], stage: int) -> Batch:
