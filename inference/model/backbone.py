@@ -39,6 +39,19 @@ class PointMaps:
     token_grid: tuple[int, int]  # (h, w)
     descriptors_left: torch.Tensor | None = None  # (B, D, H, W), MASt3R's local features
     descriptors_right: torch.Tensor | None = None
+    planes: "PlaneVolume | None" = None  # a plane-sweep backbone's depth distribution (training only)
+
+
+@dataclass
+class PlaneVolume:
+    """The depth distribution of a plane-sweep backbone: every pixel of its volume (h, w) at each of
+    its D planes, with the probability the backbone gives that plane. Training renders it (see
+    inference.train.stages); inference uses only the expected depth."""
+
+    points_left: torch.Tensor  # (B, D, 3, h, w) left frame, baseline units
+    points_right: torch.Tensor  # (B, D, 3, h, w) left frame, baseline units
+    prob_left: torch.Tensor  # (B, D, h, w)
+    prob_right: torch.Tensor  # (B, D, h, w)
 
 
 def confidence_to_opacity(conf: torch.Tensor) -> torch.Tensor:

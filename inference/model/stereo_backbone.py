@@ -15,7 +15,8 @@ For each view i (left and right, batched) and its partner j:
 - the confidence (DUSt3R convention 1 + exp(x)) comes from the peak probability and the features.
 
 Point maps are returned in the left camera's frame in units of the baseline (scale-free, as
-MASt3R's are): stage 1's scaling S (initialised to the baseline) makes them metric. Tokens for
+MASt3R's are): stage 1's scaling S (initialised to the baseline) makes them metric. In training the
+backbone also returns its whole depth distribution (`PlaneVolume`), which stage 1 renders. Tokens for
 stage 1's attention and ConvGRU are the features and the probability volume pooled to the patch
 grid.
 """
@@ -26,7 +27,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from inference.config import BackboneConfig
-from inference.model.backbone import Backbone, PointMaps
+from inference.model.backbone import Backbone, PlaneVolume, PointMaps
 from inference.model.geometry import (
     in_image,
     invert_pose,
@@ -116,4 +117,11 @@ class StereoBackbone(Backbone):
         pts_r = transform_points(r2l, pts[b:])
         p = self.cfg.patch
         tokens = F.avg_pool2d(torch.cat([feats, prob], dim=1), p // 4).flatten(2).transpose(1, 2)  # (2B, h*w, C + D)
-        return PointMaps(pts_l, pts_r, conf[:b], conf[b:], tokens[:b], tokens[b:], self.grid)
+        planes = None
+        if self.training:
+            d = self.inverse_depths.shape[0]
+            rays = pixel_rays(k_vol, vw, vh)  # (2B, 3, h, w)
+            plane_pts = rays[:, None] / self.inverse_depths.reshape(1, d, 1, 1, 1)  # (2B, D, 3, h, w)
+            right_in_left = transform_points(r2l, plane_pts[b:].permute(0, 2, 1, 3, 4)).permute(0, 2, 1, 3, 4)
+            planes = PlaneVolume(plane_pts[:b], right_in_left, prob[:b], prob[b:])
+        return PointMaps(pts_l, pts_r, conf[:b], conf[b:], tokens[:b], tokens[b:], self.grid, planes=planes)

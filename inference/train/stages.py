@@ -67,8 +67,10 @@ def _overlap(points: torch.Tensor, to_other: torch.Tensor, K: torch.Tensor, size
 
 
 class Stage1Loss(nn.Module):
-    def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1, render_scales: tuple[int, ...] = (1,)):
+    def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1, render_scales: tuple[int, ...] = (1,),
+                 plane_render: float = 0.0):
         super().__init__()
+        self.plane_render = plane_render
         self.model = model
         self.w = weights
         self.splat = PointSplatConfig(radius=point_radius)
@@ -95,8 +97,12 @@ class Stage1Loss(nn.Module):
             l_render = l_render + rendering_loss(r.image, truth, self.w.beta_l1, self.w.beta_ssim) / len(self.scales)
             if k == self.scales[0]:
                 render, render_truth = r, truth
-        # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
         loss = l_render
+        l_planes = None
+        if self.plane_render > 0 and pm.planes is not None:
+            l_planes = self._planes(pm.planes, affine.scale, left_c, right_c, batch, to_target, (cw, ch))
+            loss = loss + self.plane_render * l_planes
+        # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
         cd = None
         if self.gamma > 0:
             with torch.no_grad():
@@ -111,9 +117,26 @@ class Stage1Loss(nn.Module):
             mse = ((render.image - render_truth) ** 2).mean()
             metrics = {"loss": float(loss), "render": float(l_render), "gamma": self.gamma,
                        **({"chamfer": float(cd)} if cd is not None else {}),
+                       **({"planes": float(l_planes)} if l_planes is not None else {}),
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
                        "coverage": float(render.alpha.mean())}
         return loss, metrics, {"render": render.image.detach(), "truth": render_truth}
+
+
+    def _planes(self, planes, scale, left_c, right_c, batch: Batch, to_target, coarse: tuple[int, int]) -> torch.Tensor:
+        """Rendering loss of the backbone's depth distribution at its volume size (see TrainConfig.plane_render)."""
+        b, d, _, h, w = planes.points_left.shape
+        n = batch.per_set
+        s = scale.reshape(b, 1, 3, 1, 1)
+        pts = torch.cat([(planes.points_left * s).permute(0, 2, 1, 3, 4).reshape(b, 3, -1),
+                         (planes.points_right * s).permute(0, 2, 1, 3, 4).reshape(b, 3, -1)], dim=2)
+        cols = [F.adaptive_avg_pool2d(img, (h, w))[:, :, None].expand(b, 3, d, h, w).reshape(b, 3, -1) for img in (left_c, right_c)]
+        ops = torch.cat([planes.prob_left.reshape(b, -1), planes.prob_right.reshape(b, -1)], dim=1)[:, None]
+        size = (w, h)
+        K = resize_intrinsics(batch.targets.K, coarse, size)
+        truth = F.adaptive_avg_pool2d(batch.targets.images, (h, w))
+        r = splat_points(_expand(pts, n), _expand(torch.cat(cols, dim=2), n), _expand(ops, n), to_target, K, size, self.splat)
+        return rendering_loss(r.image, truth, self.w.beta_l1, self.w.beta_ssim)
 
 
 class Stage2Loss(nn.Module):

@@ -181,7 +181,7 @@ class Trainer:
             for p in mod.parameters():
                 p.requires_grad_(True)
         w = self.cfg.loss
-        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales) if stage == 1 else Stage2Loss(m, w)
+        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render) if stage == 1 else Stage2Loss(m, w)
         params = [p for p in m.parameters() if p.requires_grad]
         if self.world > 1:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
