@@ -59,7 +59,8 @@ def save_loss_curve(metrics_path: Path, out_path: Path) -> None:
         ax.set_title(f"stage {stage}")
         ax.set_xlabel("step")
         ax.set_ylabel("loss")
-        ax.legend(loc="upper right", fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     with atomic_path(out_path, make_parents=True) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
