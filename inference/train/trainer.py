@@ -52,7 +52,7 @@ def _rank_world() -> tuple[int, int]:
 class Trainer:
     def __init__(self, cfg: TrainConfig, data: FrameSource, out_dir: str | os.PathLike, *, resume: bool = False,
                  eval_data: Optional[FrameSource] = None, progress: Optional[Progress] = None,
-                 describe: Optional[dict] = None):
+                 describe: Optional[dict] = None, init: Optional[str | os.PathLike] = None):
         cfg.check()
         self.cfg = cfg
         self.data = data
@@ -76,8 +76,11 @@ class Trainer:
         self._optim_state = None
         if resume:
             self._load(self.out / CHECKPOINT)
-        elif self.rank == 0:
-            _check_fresh(self.out)
+        else:
+            if self.rank == 0:
+                _check_fresh(self.out)
+            if init is not None:
+                self._init_from(Path(init))
         self.model.to(self.device)
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -100,6 +103,13 @@ class Trainer:
         self.model.load_state_dict(data["state_dict"])
         self.step = int(data["train"]["step"])
         self._optim_state = data["train"].get("optimizer")
+
+    def _init_from(self, path: Path) -> None:
+        """Start this run's schedule from the weights of an earlier run (fine-tuning, a longer schedule)."""
+        data = read_checkpoint(path)
+        if data.get("config") != self.cfg.model.to_dict():
+            raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (--size, --backbone, --config)")
+        self.model.load_state_dict(data["state_dict"])
 
     def _save(self, path: Path, optimizer: Optional[torch.optim.Optimizer], final: bool = False) -> None:
         if self.rank != 0:

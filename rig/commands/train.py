@@ -27,6 +27,8 @@ def register(sub) -> None:
     p.add_argument("-o", "--out", required=True, type=Path, help="output folder (new, or the run to continue with --resume)")
     p.add_argument("--config", type=Path, help="training configuration (JSON, the keys of inference.train.config.TrainConfig)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--init", type=Path, metavar="CKPT",
+                   help="start a new run (its own schedule) from the weights of a checkpoint of the same model configuration")
     p.add_argument("--size", choices=("paper", "preview", "test"), help="model sizes (default preview)")
     p.add_argument("--backbone", choices=("stereo", "tiny"), help="point-map backbone (default stereo)")
     p.add_argument("--stage1-steps", type=int, help="stage-1 steps")
@@ -127,6 +129,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     out = output_folder(args.out)
     if not args.resume and out.exists() and ((out / "checkpoint.pt").exists() or (out / "metrics.jsonl").exists()):
         raise ConfigError(f"{out}: already holds a training run; pass --resume to continue it, or choose a new folder")
+    if args.init is not None and args.resume:
+        raise ConfigError("--init starts a new run from a checkpoint's weights; --resume continues a run: give one of them")
+    if args.init is not None and not args.init.is_file():
+        raise ConfigError(f"{args.init}: no such checkpoint")
     if args.resume and not (out / "checkpoint.pt").is_file():
         raise ConfigError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
     data = TrainingSet(expand_sequences(args.sequences))
@@ -157,7 +163,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         describe = {"sequences": [str(s.root) for s in data.sequences], "frame_sets": len(data),
                     "sources": [data.left, data.right], "supervision": data.supervision, "processes": world}
-        trainer = Trainer(cfg, data, out, resume=args.resume, progress=progress, describe=describe)
+        if args.init is not None:
+            describe["init"] = str(args.init)
+        trainer = Trainer(cfg, data, out, resume=args.resume, progress=progress, describe=describe, init=args.init)
         summary = trainer.run(stop_after=args.stop_after)
     finally:
         if bar is not None:

@@ -150,6 +150,17 @@ def test_a_checkpoint_of_another_configuration_is_refused_and_kept(takes, light,
     one_line_exit_2(r)
     assert "configuration" in r.stderr
     assert (out / "checkpoint.pt").read_bytes() == before
+    # A new run may start from the trained weights (--init), of the same model configuration only.
+    r = rig("train", *takes, "-o", tmp_path / "bigger", "--size", "preview", "--init", out / "model.pt")
+    one_line_exit_2(r)
+    assert "configuration" in r.stderr
+    r = rig("train", *takes, "-o", tmp_path / "again", *SMALL, "--config", light, "--batch", "1", "--stage1-steps", "1",
+            "--stage2-steps", "0", "--init", out / "model.pt")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "again" / "train.json").read_text())["init"] == str(out / "model.pt")
+    first = [m for m in metrics(out) if not m.get("eval")][0]
+    again = [m for m in metrics(tmp_path / "again") if not m.get("eval")][0]
+    assert again["loss"] != first["loss"]  # same batch, other weights: the run started from the trained ones
 
 
 def test_an_unwritable_output_folder_is_refused_before_any_work(takes, tmp_path):
