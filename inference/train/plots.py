@@ -51,6 +51,10 @@ def save_loss_curve(metrics_path: Path, out_path: Path) -> None:
             if len(loss) >= k:
                 smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
                 ax.plot(steps[k - 1:], smooth, color="tab:blue", label=f"loss (mean of {k})")
+                # The rendering term alone: the total jumps where a schedule adds a term (the Chamfer ramp).
+                if all("render" in r for r in rows) and len(rows) >= k:
+                    part = np.convolve(np.array([r["render"] for r in rows]), np.ones(k) / k, mode="valid")
+                    ax.plot(steps[k - 1:], part, color="tab:green", label="rendering term")
         ev = evals.get(stage, [])
         if ev:
             ax2 = ax.twinx()
