@@ -40,8 +40,7 @@ def main() -> int:
     from inference.evaluate.model_eval import evaluate
     from inference.model.checkpoint import load_checkpoint
     from inference.model.pipeline import build_model
-    from rig.commands.train import expand_sequences
-    from rig.storage.dataset import TrainingSet
+    from rig.storage.dataset import TrainingSet, expand_sequences
     from simulator.takes import write_dataset
 
     trained = load_checkpoint(args.model)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from inference.train.chamfer import chamfer_6d as exact_chamfer
+from inference.train.chamfer import chamfer_6d  # noqa: F401  (the stage-1 regulariser; exact, see chamfer.py)
 
 
 def _gaussian_window(size: int, sigma: float, channels: int, dtype, device) -> torch.Tensor:
@@ -50,13 +50,6 @@ def point_colour_set(points: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     """A point map (B, 3, H, W) and its image (B, 3, H, W) as a 6-D point set (B, H*W, 6)."""
     b = points.shape[0]
     return torch.cat([points.reshape(b, 3, -1), image.reshape(b, 3, -1)], dim=1).transpose(1, 2)
-
-
-def chamfer_6d(a: torch.Tensor, b: torch.Tensor, weight_a: torch.Tensor | None = None, weight_b: torch.Tensor | None = None) -> torch.Tensor:
-    """Symmetric Chamfer distance CD(a->b) + CD(b->a) of point sets (B, N, D) and (B, M, D),
-    averaged over the batch. Optional weights (B, N) / (B, M) in {0, 1} leave out invalid points.
-    Exact nearest neighbours without an all-pairs matrix (inference.train.chamfer)."""
-    return exact_chamfer(a, b, weight_a, weight_b)
 
 
 def stage1_loss(render: torch.Tensor, truth: torch.Tensor, chamfer: torch.Tensor, gamma: float = 0.5) -> torch.Tensor:

@@ -31,7 +31,8 @@ PNG_RATIO = 0.6  # a rendered calibration view's PNG against its raw size (measu
 
 
 def register(sub) -> None:
-    p = sub.add_parser("demo", help="run the main job on the simulated rig: calibrate, record, validate (no hardware needed)",
+    p = sub.add_parser("demo", help="run the main job on the simulated rig: calibrate, record, validate, render novel views with the shipped model "
+                            "(no hardware needed)",
                        description="Calibrate a simulated rig, record a take with the calibration and validate it, running the same "
                                    "commands a user runs on a real rig. Writes a few hundred MB by default (it says how much first).")
     p.add_argument("-o", "--out", type=Path, default=Path("out/demo"), help="working folder, new or empty (default out/demo)")

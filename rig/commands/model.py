@@ -279,9 +279,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from rig.commands._output import emit_json
-    from rig.commands.train import expand_sequences
     from rig.errors import ConfigError
-    from rig.storage.dataset import TrainingSet
+    from rig.storage.dataset import TrainingSet, expand_sequences
 
     if args.every < 1:
         raise ConfigError(f"--every must be at least 1, got {args.every}")

@@ -43,22 +43,6 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_train)
 
 
-def expand_sequences(paths: list[Path]) -> list[Path]:
-    """A folder with dataset.json (rig sim dataset) stands for its takes."""
-    out = []
-    for p in paths:
-        listing = p / "dataset.json"
-        if listing.is_file():
-            try:
-                takes = json.loads(listing.read_text())["takes"]
-            except (OSError, ValueError, KeyError, TypeError):
-                raise ConfigError(f"{listing}: not a readable data-set listing") from None
-            out += [p / t for t in takes]
-        else:
-            out.append(p)
-    return out
-
-
 def build_config(args: argparse.Namespace):
     from inference.config import ModelConfig, Sizes
     from inference.train.config import TrainConfig
@@ -116,7 +100,7 @@ def _relaunch(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from rig.commands._output import emit_json
     from rig.commands._paths import output_folder
-    from rig.storage.dataset import TrainingSet
+    from rig.storage.dataset import TrainingSet, expand_sequences
 
     if args.stop_after is not None and args.stop_after < 1:
         raise ConfigError(f"--stop-after must be at least 1, got {args.stop_after}")

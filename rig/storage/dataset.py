@@ -12,6 +12,7 @@ interpolation when shrinking; the intrinsics follow the pixel-centre convention 
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional
@@ -179,3 +180,19 @@ class TrainingSet:
         s = self.sequences[k].sample(p, self.names, with_depth=with_truth)
         s.key = f"{self.sequences[k].root.name}#{s.set}"
         return s
+
+
+def expand_sequences(paths: list[Path]) -> list[Path]:
+    """A folder with dataset.json (rig sim dataset) stands for its takes."""
+    out = []
+    for p in paths:
+        listing = p / "dataset.json"
+        if listing.is_file():
+            try:
+                takes = json.loads(listing.read_text())["takes"]
+            except (OSError, ValueError, KeyError, TypeError):
+                raise SequenceError(f"{listing}: not a readable data-set listing") from None
+            out += [p / t for t in takes]
+        else:
+            out.append(p)
+    return out
