@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -33,3 +34,54 @@ def shared_data() -> Path:
     if not d.is_dir():
         pytest.skip(f"real test images not available: {d} is absent (they ship beside the checkout in ../shared)")
     return d
+
+
+# --- small exported models (test size), made once per test run ------------------------------------
+
+@dataclass
+class Exported:
+    path: Path
+    backbone: str
+
+
+def _export(tmp_path_factory, backbone: str) -> Exported:
+    """Export through the command line, as a user would; once per test run, also when pytest-xdist
+    runs the tests in several processes (they share the parent of their temp folders, and the
+    first to take the lock exports)."""
+    import os
+
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # pytest-N/popen-gwK under xdist
+    folder = shared / f"exported-model-{backbone}"
+    with FileLock(str(shared / f"exported-model-{backbone}.lock")):
+        out = folder / f"{backbone}.onnx"
+        if not out.is_file():
+            folder.mkdir(exist_ok=True)
+            _export_to(out, backbone)
+    return Exported(out, backbone)
+
+
+def _export_to(out: Path, backbone: str) -> None:
+    import contextlib
+    import io
+    import json
+
+    from rig.cli import main
+
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        rc = main(["model", "export", "--backbone", backbone, "--size", "test", "--fp16", "-o", str(out), "--json"])
+    assert rc == 0 and out.is_file()
+    assert json.loads(printed.getvalue())["files"] == [str(out), str(out.with_name(f"{backbone}.fp16.onnx"))]
+
+
+@pytest.fixture(scope="session")
+def tiny_onnx(tmp_path_factory) -> Exported:
+    return _export(tmp_path_factory, "tiny")
+
+
+@pytest.fixture(scope="session")
+def oracle_onnx(tmp_path_factory) -> Exported:
+    return _export(tmp_path_factory, "oracle")

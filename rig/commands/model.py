@@ -1,4 +1,5 @@
-"""`rig model`: export the Splat-SAP model to ONNX, check ONNX Runtime against torch, benchmark both.
+"""`rig model`: export the Splat-SAP model to ONNX, check ONNX Runtime against torch, benchmark both,
+evaluate a model on sequences, and render views from a sequence (ONNX Runtime only, as `rig live`).
 
 torch is imported inside the handlers only: `rig --help` and the live path never load it.
 """
@@ -77,6 +78,30 @@ def register(subparsers) -> None:
     v.add_argument("--no-references", action="store_true", help="skip the oracle and nearer-source references")
     v.add_argument("--json", action="store_true", help="print every figure as one JSON object")
     v.set_defaults(func=cmd_eval)
+
+    r = sub.add_parser("render", help="render a novel view (PNG) or a left-to-right sweep (MP4) from a recorded sequence",
+                       description="Render the view of a virtual camera from a frame set's two source frames (the cameras with "
+                                   "roles left and right) with the ONNX Runtime pipeline, as `rig live` does, without a browser. "
+                                   "--view: a PNG at one viewpoint; --orbit: a video sweeping from the left source to the right "
+                                   "one over consecutive frame sets.")
+    r.add_argument("--model", metavar="M.onnx", help="an exported model (default: the shipped model, models/)")
+    r.add_argument("--sequence", required=True, type=Path, metavar="SEQ", help="a sequence folder (rig record, rig sim take)")
+    r.add_argument("--set", type=int, default=0, metavar="N", help="the frame set (row of index.jsonl) to render, or where the orbit starts (default 0)")
+    what = r.add_mutually_exclusive_group(required=True)
+    what.add_argument("--view", metavar="t|CAMERA",
+                      help="a number from 0 (the left source) to 1 (the right source) along the arc between them, "
+                           "or the name of a calibrated camera of the sequence")
+    what.add_argument("--orbit", action="store_true", help="a video: frame i shows set N+i at t = i/(K-1), from left to right")
+    r.add_argument("--frames", type=int, metavar="K", help="frames of the orbit (default: every set from --set to the end)")
+    r.add_argument("--fps", type=float, help="frame rate of the orbit video (default: the sequence's rate, else 30)")
+    r.add_argument("--yaw", type=float, help="orbit about the subject, degrees (positive: towards the right source)")
+    r.add_argument("--pitch", type=float, help="orbit up (positive) or down, degrees")
+    r.add_argument("--zoom", type=float, help="focal-length multiplier (0.5 to 3)")
+    r.add_argument("--providers", help="comma-separated ONNX Runtime providers (default: best installed)")
+    r.add_argument("-o", "--output", required=True, metavar="FILE",
+                   help="the image (.png, .jpg) for --view, the video (.mp4, .mkv, .mov) for --orbit; replaced if it exists")
+    r.add_argument("--json", action="store_true", help="print one JSON object: output, model, sequence, sets, viewpoints, size, codec, ms")
+    r.set_defaults(func=cmd_render)
 
 
 def _providers(text: str | None) -> list[str] | None:
@@ -328,4 +353,176 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if result["scale_jitter"] is not None:
         j = result["scale_jitter"]
         print(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")
+    return 0
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov")
+def _render_source(args: argparse.Namespace):
+    """The sequence, its source camera names, every calibrated camera (the presets) and the rig."""
+    from calibration.camera import RigCalibration
+    from rig.errors import ConfigError
+    from rig.storage.dataset import Sequence
+    from rig.storage.layout import SequenceError
+
+    root = args.sequence
+    if not root.is_dir():
+        raise ConfigError(f"--sequence {root}: no such sequence folder")
+    if (root / "dataset.json").is_file():
+        raise ConfigError(f"--sequence {root}: is a data set of several takes; name one of them")
+    seq = Sequence(root)
+    roles = {c.role: c.name for c in seq.meta.cameras if c.role in ("left", "right")}
+    if "left" not in roles or "right" not in roles:
+        raise SequenceError(f"{root}: the sequence has no camera with role left and one with role right (the model's sources)")
+    cameras = []
+    for name in seq.camera_names:
+        try:
+            cameras.append(seq.camera_model(name))
+        except SequenceError:
+            if name in (roles["left"], roles["right"]):
+                raise
+    return seq, roles["left"], roles["right"], RigCalibration(cameras)
+
+
+def _viewpoint_message(args: argparse.Namespace, view: str | float) -> dict:
+    message: dict = {"type": "viewpoint"}
+    try:
+        message["t"] = float(view)
+    except ValueError:
+        message["preset"] = view
+    for key in ("yaw", "pitch", "zoom"):
+        if getattr(args, key) is not None:
+            message[key] = getattr(args, key)
+    return message
+
+
+def _parse_view(args: argparse.Namespace, view: str | float, rig, sources):
+    from rig.errors import ConfigError
+    from rig.live.viewpoint import parse_viewpoint
+
+    message = _viewpoint_message(args, view)
+    if "preset" in message and message["preset"] not in rig:
+        raise ConfigError(f"--view {view}: no camera {view!r} in the sequence's calibration "
+                          f"(cameras: {', '.join(rig.names)}; or a number from 0 to 1 along the arc)")
+    try:
+        return parse_viewpoint(message, rig, sources=sources)
+    except ValueError as exc:
+        raise ConfigError(f"--view {view}: {exc}") from None
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    import statistics
+
+    from inference.errors import InferenceError
+    from rig.commands._output import emit_json
+    from rig.commands._paths import output_file
+    from rig.errors import ConfigError
+
+    out = output_file(args.output)
+    suffixes = VIDEO_SUFFIXES if args.orbit else IMAGE_SUFFIXES
+    if out.suffix.lower() not in suffixes:
+        raise ConfigError(f"{out}: {'--orbit writes a video' if args.orbit else '--view writes an image'}; "
+                          f"the output file name must end in {', '.join(suffixes)} (nothing was written)")
+    if args.set < 0:
+        raise ConfigError(f"--set must be 0 or more, got {args.set}")
+    for flag, value in (("--frames", args.frames), ("--fps", args.fps)):
+        if value is not None and not args.orbit:
+            raise ConfigError(f"{flag} is for --orbit (a video); --view renders one image")
+    if args.frames is not None and args.frames < 1:
+        raise ConfigError(f"--frames must be at least 1, got {args.frames}")
+    if args.fps is not None and not 0 < args.fps <= 1000:
+        raise ConfigError(f"--fps must be between 0 and 1000, got {args.fps:g}")
+
+    seq, left, right, rig = _render_source(args)
+    sources = (left, right)
+    n_sets = len(seq)
+    if args.set >= n_sets:
+        raise ConfigError(f"--set {args.set}: out of range ({seq.root} has {n_sets} frame set{'s' * (n_sets != 1)}: 0 to {n_sets - 1})"
+                          if n_sets else f"--set {args.set}: {seq.root} has no frame sets")
+    if args.orbit:
+        frames = args.frames if args.frames is not None else n_sets - args.set
+        if args.set + frames > n_sets:
+            raise ConfigError(f"--frames {frames} from --set {args.set}: {seq.root} has only {n_sets - args.set} sets from there")
+        positions = list(range(args.set, args.set + frames))
+        ts = [0.5] if frames == 1 else [i / (frames - 1) for i in range(frames)]
+        viewpoints = [_parse_view(args, t, rig, sources) for t in ts]
+    else:
+        positions = [args.set]
+        viewpoints = [_parse_view(args, args.view, rig, sources)]
+    for p in positions:
+        missing = [n for n in sources if seq.rows[p]["frames"].get(n) is None]
+        if missing:
+            raise ConfigError(f"--set {p}: frame set {p} of {seq.root} has no frame of {' and '.join(missing)} (a dropped frame); choose another set")
+
+    from inference.runtime import NovelViewPipeline
+
+    model = args.model
+    if model is None:
+        from inference.runtime.shipped import shipped_onnx
+
+        try:
+            model = shipped_onnx()
+        except InferenceError:
+            raise ConfigError("no shipped model in this installation (models/splat-sap-preview.onnx); "
+                              "name one with --model M.onnx (rig model export)") from None
+    pipe = NovelViewPipeline(model, providers=_providers(args.providers))
+    needs_depth = pipe.info.needs_depth
+    if needs_depth and not seq.has_ground_truth():
+        raise ConfigError(f"{model}: an oracle model reads ground-truth depth, which only simulator takes have; render a trained model")
+    size = tuple(pipe.sizes.output)
+    status = _status()
+    times: list[float] = []
+
+    def views():
+        for i, (p, vp) in enumerate(zip(positions, viewpoints)):
+            status.update(f"rendering {i + 1}/{len(positions)} (set {p}, {vp.label()}) ...", force=True)
+            sample = seq.sample(p, [left, right], with_depth=needs_depth)
+            target = vp.camera(rig, size, sources=sources)
+            view = pipe.render(sample.images[left], sample.images[right], sample.cameras[left], sample.cameras[right], target,
+                               sample.depth.get(left), sample.depth.get(right))
+            times.append(view.ms)
+            yield view.image_uint8()
+
+    codec = label = None
+    if args.orbit:
+        from rig.live.video import write_video
+
+        fps = args.fps or float(seq.meta.rate_hz or 30.0)
+        video = write_video(out, views(), fps)
+        written, codec, label = video.frames, video.codec, video.codec_label
+    else:
+        import cv2
+
+        from common.files import atomic_path
+        from inference.errors import OutputError
+
+        rgb = next(views())
+        with atomic_path(out) as tmp:
+            if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+                raise OutputError(f"{out}: could not write the image")
+        written = 1
+    status.done()
+    info = {
+        "output": str(out),
+        "kind": "video" if args.orbit else "image",
+        "model": str(pipe.path),
+        "providers": pipe.providers,
+        "sequence": str(seq.root),
+        "sets": positions,
+        "sources": list(sources),
+        "viewpoints": [vp.describe() for vp in viewpoints],
+        "size": list(size),
+        "frames": written,
+        "codec": codec,
+        "fps": fps if args.orbit else None,
+        "model_ms_median": round(statistics.median(times), 1) if times else None,
+    }
+    if args.json:
+        emit_json(info)
+    elif args.orbit:
+        print(f"wrote {out}: {written} frames at {fps:g} fps, {size[0]}x{size[1]}, {label} ({codec}); sets {positions[0]} to {positions[-1]}, "
+              f"left to right; model {info['model_ms_median']} ms per frame (median)")
+    else:
+        vp = viewpoints[0]
+        print(f"wrote {out}: {size[0]}x{size[1]}, set {positions[0]}, view {vp.label()}; model {info['model_ms_median']} ms")
     return 0

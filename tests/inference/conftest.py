@@ -1,5 +1,5 @@
-"""Fixtures of the model tests: small exported models (made once per session, in a temp dir) and a
-simulator frame set with ground truth."""
+"""Fixtures of the model tests: a simulator frame set with ground truth (the small exported models
+they use, `tiny_onnx` and `oracle_onnx`, are in tests/conftest.py: the live tests use them too)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -10,55 +10,6 @@ import pytest
 import torch
 
 torch.set_num_threads(2)
-
-
-@dataclass
-class Exported:
-    path: Path
-    backbone: str
-
-
-def _export(tmp_path_factory, backbone: str) -> Exported:
-    """Export through the command line, as a user would; once per test run, also when pytest-xdist
-    runs the tests in several processes (they share the parent of their temp folders, and the
-    first to take the lock exports)."""
-    import os
-
-    from filelock import FileLock
-
-    base = tmp_path_factory.getbasetemp()
-    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # pytest-N/popen-gwK under xdist
-    folder = shared / f"exported-model-{backbone}"
-    with FileLock(str(shared / f"exported-model-{backbone}.lock")):
-        out = folder / f"{backbone}.onnx"
-        if not out.is_file():
-            folder.mkdir(exist_ok=True)
-            _export_to(out, backbone)
-    return Exported(out, backbone)
-
-
-def _export_to(out: Path, backbone: str) -> None:
-    import contextlib
-    import io
-    import json
-
-    from rig.cli import main
-
-    printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
-        rc = main(["model", "export", "--backbone", backbone, "--size", "test", "--fp16", "-o", str(out), "--json"])
-    assert rc == 0 and out.is_file()
-    assert json.loads(printed.getvalue())["files"] == [str(out), str(out.with_name(f"{backbone}.fp16.onnx"))]
-
-
-@pytest.fixture(scope="session")
-def tiny_onnx(tmp_path_factory) -> Exported:
-    return _export(tmp_path_factory, "tiny")
-
-
-@pytest.fixture(scope="session")
-def oracle_onnx(tmp_path_factory) -> Exported:
-    return _export(tmp_path_factory, "oracle")
 
 
 @dataclass
