@@ -34,6 +34,10 @@ from inference.model.stage2 import ColourInit, DepthRefine, GaussianPlane
 INPUT_NAMES = ("left_image", "right_image", "left_K", "right_K", "left_pose", "right_pose", "target_K", "target_pose")
 DEPTH_INPUT_NAMES = ("left_depth", "right_depth")
 OUTPUT_NAMES = ("image", "depth")
+# What the target-dependent part (depth_init onwards) reads from stage 1 (point_init +
+# affine_transform): the affine-transformed point maps and their splatting opacities. The ONNX
+# export cuts the graph at these tensors (inference/export.py, the stage1 and view parts).
+STAGE1_OUTPUT_NAMES = ("stage1_points_left", "stage1_points_right", "stage1_opacity_left", "stage1_opacity_right")
 
 
 BACKBONES = {"tiny": TinyBackbone, "oracle": OracleBackbone, "stereo": StereoBackbone}
@@ -76,6 +80,7 @@ class SplatSAP(nn.Module):
         self.gaussian_plane = GaussianPlane(cfg.stage2, s.fine)
         self.splatting = PlaneSplatter(cfg.splat, s.fine, s.output)
         self.stage_hook: Callable[[str], ContextManager] | None = None
+        self.export_stage1 = False  # set by the ONNX export: forward also returns the stage-1 tensors
 
     @property
     def needs_depth(self) -> bool:
@@ -90,6 +95,8 @@ class SplatSAP(nn.Module):
 
     def forward(self, left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose, left_depth=None, right_depth=None):
         out = self.run(left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose, left_depth, right_depth)
+        if self.export_stage1:
+            return (out["image"], out["depth"]) + tuple(out["stage1"][n] for n in STAGE1_OUTPUT_NAMES)
         return out["image"], out["depth"]
 
     def run(self, left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose, left_depth=None, right_depth=None) -> dict:
@@ -111,14 +118,8 @@ class SplatSAP(nn.Module):
         with self._stage("affine_transform"):
             affine = self.affine_transform(pm, left_K_c, right_K_c, right_to_left)
         with self._stage("depth_init"):
-            init = self.depth_init(
-                affine.points_left,
-                affine.points_right,
-                confidence_to_opacity(pm.conf_left),
-                confidence_to_opacity(pm.conf_right),
-                left_to_target,
-                target_K_fine,
-            )
+            stage1 = dict(zip(STAGE1_OUTPUT_NAMES, (affine.points_left, affine.points_right, confidence_to_opacity(pm.conf_left), confidence_to_opacity(pm.conf_right))))
+            init = self.depth_init(*stage1.values(), left_to_target, target_K_fine)
         with self._stage("depth_refine"):
             refined = self.depth_refine(left_image, right_image, left_K, right_K, target_to_left, target_to_right, target_K_fine, init.depth)
         with self._stage("colour_init"):
@@ -133,6 +134,7 @@ class SplatSAP(nn.Module):
             "alpha": rendered.alpha,
             "point_maps": pm,
             "affine": affine,
+            "stage1": stage1,  # the tensors depth_init reads from stage 1 (STAGE1_OUTPUT_NAMES)
             "initial_depth": init,
             "refined": refined,
             "colours": colours,

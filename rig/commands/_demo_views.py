@@ -53,3 +53,30 @@ def render_novel_views(take: Path, out_dir: Path, sets: int = 3, model: Path | N
     return {"model": str(pipe.path), "views": len(scores), "sets": [int(p) for p in picks], "cameras": sups,
             "psnr": round(statistics.mean(scores), 2), "nearer_source_psnr": round(statistics.mean(nearer_scores), 2),
             "ms_per_view": round(statistics.median(ms), 1), "folder": str(out_dir), "files": files}
+
+
+def render_strip(take: Path, out_png: Path, ts: tuple[float, ...] = (0.25, 0.5, 0.75), model: Path | None = None) -> dict:
+    """One PNG of the take's middle complete set: source left | novel views at `ts` along the arc
+    from left to right | source right, all at the model's output size."""
+    from inference.runtime import NovelViewPipeline
+    from rig.live.viewpoint import arc_camera
+    from rig.storage.dataset import Sequence
+
+    seq = Sequence(take)
+    roles = {c.name: c.role for c in seq.meta.cameras}
+    left = next(n for n, r in roles.items() if r == "left")
+    right = next(n for n, r in roles.items() if r == "right")
+    pipe = NovelViewPipeline(model)
+    complete = seq.complete_sets([left, right])
+    s = seq.sample(complete[len(complete) // 2], [left, right])
+    cams = s.cameras
+    size = pipe.sizes.output
+    tiles = [pipe.prepare.resampler(cams[left], size).image(s.images[left])]
+    for t in ts:
+        view = pipe.render(s.images[left], s.images[right], cams[left], cams[right], arc_camera(cams[left], cams[right], t, size))
+        tiles.append(view.image)
+    tiles.append(pipe.prepare.resampler(cams[right], size).image(s.images[right]))
+    strip = np.concatenate(tiles, axis=1)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out_png), cv2.cvtColor((np.clip(strip, 0, 1) * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+    return {"file": str(out_png), "set": int(s.set), "t": list(ts)}

@@ -30,6 +30,9 @@ TARGET = {"focal_pct": 0.1, "principal_px": 1.0, "rotation_deg": 0.05, "position
 PNG_RATIO = 0.6  # a rendered calibration view's PNG against its raw size (measured about 0.55)
 
 
+ORBIT_FRAMES = 48  # at most: one frame per set, from the take's first set
+
+
 def register(sub) -> None:
     p = sub.add_parser("demo", help="run the main job on the simulated rig: calibrate, record, validate, render novel views with the shipped model "
                             "(no hardware needed)",
@@ -120,7 +123,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from calibration.compare import describe, errors_against_truth
     from rig.cameras.sim import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.config import dump_config, parse_config
-    from rig.commands._demo_views import render_novel_views
+    from rig.commands._demo_views import render_novel_views, render_strip
     from simulator.calibration_session import CalibrationSession
 
     _check_arguments(args)
@@ -179,10 +182,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"4/5  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
           f"skew p99 {val['skew_us'].get('p99', 0):.0f} us, calibrated: {val['calibrated']}")
     novel = out / "novel-views"
-    try:
-        from inference.errors import InferenceError
+    from inference.errors import InferenceError
 
+    strip = orbit = None
+    try:
         nv = render_novel_views(take, novel)
+        strip = render_strip(take, out / "novel-strip.png")
+        orbit = _run(["model", "render", "--sequence", str(take), "--orbit", "--frames", str(min(ORBIT_FRAMES, rec["sets"])),
+                      "-o", str(out / "orbit.mp4")])
     except InferenceError as exc:  # an installation without the shipped model
         nv = {"skipped": str(exc)}
     if "skipped" in nv:
@@ -192,8 +199,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
               f"from left + right, {nv['ms_per_view']:.0f} ms each")
         print(f"     PSNR against the real cameras {nv['psnr']:.2f} dB (the nearer source as it is: {nv['nearer_source_psnr']:.2f} dB); "
               f"PNGs (novel | real) in {novel}/")
+    if orbit is not None:
+        print(f"     orbit video, left to right over the take: {orbit['output']} ({orbit['frames']} frames, {orbit['codec']}); "
+              f"strip (left | t = 0.25, 0.5, 0.75 | right): {strip['file']}")
     print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")
     print(f"disk: {_mb(_written(out))} written into {out} (take {_mb(_written(take))}, calibration views {_mb(_written(views_dir))})")
+    print(f"live: `rig live -c {rig_file}` runs this rig through the model and serves the novel view at "
+          f"http://{cfg.live.host}:{cfg.live.port}/ (Ctrl-C stops it)")
     print(f"next: `rig record validate {take}`; read it for training with rig.storage.dataset.Sequence('{take}');"
           f" export the calibration with `rig calibrate export {calib_file} --format colmap -o OUT`")
     return 0 if val["readable"] else 1

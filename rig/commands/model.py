@@ -146,8 +146,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     result = export_onnx(model, args.output, fp16=args.fp16, weights=weights, opset=args.opset)
     status.done()
     files = [str(result.path)] + ([str(result.fp16_path)] if result.fp16_path else [])
+    parts = [str(p) for p in result.parts]  # stage 1 and the view of each, for the live path
     info = {
         "files": files,
+        "parts": parts,
         "backbone": model.cfg.backbone.kind,
         "sizes": model.cfg.sizes.describe(),
         "opset": result.opset,
@@ -159,7 +161,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(info)
     else:
-        for f in files:
+        for f in files + parts:
             print(f"wrote {f}")
         print(f"backbone {info['backbone']}, sizes {info['sizes']}, opset {info['opset']}, {info['parameters']:,} parameters, weights: {info['weights']}")
         if not trained:

@@ -16,7 +16,8 @@ from inference.model.pipeline import build_model
 
 def test_export_writes_self_contained_models_and_nothing_else(tiny_onnx):
     folder = tiny_onnx.path.parent
-    assert sorted(p.name for p in folder.iterdir()) == ["tiny.fp16.onnx", "tiny.onnx"]  # no temporaries, no .data files
+    assert sorted(p.name for p in folder.iterdir()) == ["tiny.fp16.onnx", "tiny.fp16.stage1.onnx", "tiny.fp16.view.onnx",
+                                                       "tiny.onnx", "tiny.stage1.onnx", "tiny.view.onnx"]  # no temporaries, no .data files
     for path in folder.iterdir():
         model = onnx.load(str(path), load_external_data=False)
         assert not any(uses_external_data(t) for t in model.graph.initializer)

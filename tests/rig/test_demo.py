@@ -11,6 +11,8 @@ deterministic. Bad arguments are refused before anything is rendered or written.
 from __future__ import annotations
 
 import json
+
+import cv2
 import time
 
 import pytest
@@ -22,7 +24,7 @@ from tests.rig.cli_helpers import run_rig
 @pytest.mark.slow
 def test_demo_calibrates_records_and_validates_a_two_camera_rig(tmp_path):
     out = tmp_path / "demo"
-    proc = run_rig("demo", "-o", out, "--cameras", 2, "--seconds", 0.5, "--views", 12, timeout=300)
+    proc = run_rig("demo", "-o", out, "--cameras", 2, "--seconds", 0.25, "--views", 12, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "4/5  validated: readable" in proc.stdout and "calibrated: True" in proc.stdout
     # The calibration report's warnings are shown (12 views are too few to trust the intrinsics),
@@ -31,6 +33,14 @@ def test_demo_calibrates_records_and_validates_a_two_camera_rig(tmp_path):
     assert "against the simulator's exact cameras (worst camera): focal" in proc.stdout
     # Disk: estimated before, measured after.
     assert "the demo writes about" in proc.stdout and "disk: " in proc.stdout and " written into " in proc.stdout
+    # With the shipped model: an orbit video and a strip (left | novel views | right) of the take,
+    # and how to run the same rig live.
+    from rig.live.video import read_frame_count
+
+    strip = cv2.imread(str(out / "novel-strip.png"))
+    assert strip is not None and strip.shape[1] == 5 * strip.shape[0] * 16 // 9
+    assert read_frame_count(out / "orbit.mp4") >= 5
+    assert f"live: `rig live -c {out / 'rig.toml'}`" in proc.stdout
 
     take = out / "take"
     assert (take / "calibration.json").is_file()

@@ -1,0 +1,162 @@
+"""The live loop against the model's own speed, and end-to-end latency to a real browser.
+
+Runs `rig live`'s engine and server (rig.live.app.LiveApp) on a simulated rig (default: six cameras
+at 640x360, 30 Hz, hardware-triggered by the emulated board) or replaying a recorded take
+(--replay), opens the viewer page in headless Chromium (Debian's /usr/bin/chromium through
+selenium), and for --seconds measures:
+
+- model alone: stage 1 + one view run back to back on a frame set of the same rig with the same
+  ONNX Runtime sessions (before and after the live run; their mean), frames per second;
+- live loop: frames the page drew per second (one viewer), and that rate over the model's;
+- latency: from the exposure of the frames (the trigger pulse's host time from the board's clock
+  model; a replayed take: the instant it is due) to the page's acknowledgement of the drawn frame,
+  p50/p95/max, and p50 minus the model's time for one frame (the issue's bound: at most 60 ms);
+- with --viewers 2: a second page at another viewpoint; stage-1 runs against views rendered (each
+  frame set's stage 1 is shared by both viewers).
+
+    .venv/bin/python benchmarks/live_latency.py [--model M.onnx] [--seconds 30] [--viewers 1|2]
+        [--replay SEQUENCE] [--cameras 6] [--size 640x360] [--fps 30] [--threads N] [--json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
+
+
+def browser():
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    os.environ.setdefault("SE_OFFLINE", "true")
+    options = Options()
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1280,900", "--disable-dev-shm-usage"):
+        options.add_argument(arg)
+    options.binary_location = CHROMIUM
+    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+
+
+def drawn(driver) -> int:
+    return int(driver.execute_script("return document.body.dataset.framesDrawn || 0"))
+
+
+def model_alone(engine, runs: int) -> float:
+    """Mean ms of stage 1 + one view on the newest frame set, run back to back."""
+    cur = None
+    deadline = time.monotonic() + 60
+    while cur is None and time.monotonic() < deadline:
+        cur = engine._current
+        time.sleep(0.05)
+    if cur is None:
+        raise SystemExit("no frame set reached the model in 60 s")
+    from rig.live.viewpoint import parse_viewpoint
+
+    camera = parse_viewpoint({"type": "viewpoint", "t": 0.5}, engine.rig, engine.sources).camera(engine.rig, engine.output_size, engine.sources)
+    times = []
+    with engine.model_held() as model:  # the live loop waits meanwhile
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            out = model.stage1(cur.feeds)
+            model.render(out, cur.feeds, camera)
+            times.append((time.perf_counter() - t0) * 1000.0)
+    return statistics.mean(times)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", type=Path, help="exported model (default: the shipped one)")
+    ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--viewers", type=int, choices=(1, 2), default=1)
+    ap.add_argument("--replay", type=Path, help="a recorded take to replay instead of the simulated rig")
+    ap.add_argument("--cameras", type=int, default=6)
+    ap.add_argument("--size", default="640x360")
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all cores)")
+    ap.add_argument("--runs", type=int, default=8, help="model-alone runs before and after the live run")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+
+    from rig.cameras.sim import sim_rig_config
+    from rig.config import parse_config
+    from rig.live.app import LiveApp
+
+    w, h = (int(v) for v in args.size.split("x"))
+    cfg = parse_config(sim_rig_config(args.cameras, w, h, fps=args.fps))
+    os.environ.setdefault("RIG_CACHE_DIR", tempfile.mkdtemp(prefix="rig-bench-cache-"))
+    app = LiveApp.build(cfg, model=args.model, replay=args.replay, threads=args.threads)
+    with app:
+        engine = app.engine
+        before = model_alone(engine, args.runs)
+        server = app.serve("127.0.0.1", 0, None)
+        drivers = [browser() for _ in range(args.viewers)]
+        try:
+            drivers[0].get(server.url)
+            if args.viewers == 2:
+                drivers[1].get(server.url + "?t=0.2")
+            deadline = time.monotonic() + 60
+            while drawn(drivers[0]) < 3 and time.monotonic() < deadline:
+                time.sleep(0.1)
+            engine.latency.values.clear()
+            s1_0, v_0, n0, t0 = engine.stage1_runs, engine.view_runs, drawn(drivers[0]), time.monotonic()
+            time.sleep(args.seconds)
+            n1, t1, s1_1, v_1 = drawn(drivers[0]), time.monotonic(), engine.stage1_runs, engine.view_runs
+            lat = list(engine.latency.values)
+            status = engine.status()
+        finally:
+            for d in drivers:
+                d.quit()
+            server.stop()
+        after = model_alone(engine, args.runs)
+    model_ms = (before + after) / 2
+    live_fps = (n1 - n0) / (t1 - t0)
+    model_fps = 1000.0 / model_ms
+    p50 = float(np.percentile(lat, 50)) if lat else None
+    result = {
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        "model": status["model"],
+        "source": str(args.replay) if args.replay else f"sim rig, {args.cameras} cameras {args.size} at {args.fps:g} Hz",
+        "viewers": args.viewers,
+        "seconds": round(t1 - t0, 1),
+        "model_ms": round(model_ms, 1),
+        "model_ms_before_after": [round(before, 1), round(after, 1)],
+        "model_fps": round(model_fps, 3),
+        "live_fps_viewer1": round(live_fps, 3),
+        "live_over_model": round(live_fps / model_fps, 3) if args.viewers == 1 else None,
+        "latency_ms": {"p50": round(p50, 1) if p50 else None, "p95": round(float(np.percentile(lat, 95)), 1) if lat else None,
+                       "max": round(max(lat), 1) if lat else None, "n": len(lat)},
+        "latency_p50_minus_model_ms": round(p50 - model_ms, 1) if p50 else None,
+        "stage1_runs": s1_1 - s1_0,
+        "view_runs": v_1 - v_0,
+        "ms_live": status["ms"],
+        "sets_in": status["sets_in"],
+        "sets_dropped": status["sets_dropped"],
+    }
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"source: {result['source']}; model {result['model']['path']} ({result['model']['sizes']})")
+        print(f"model alone: {model_ms:.1f} ms per frame (before {before:.1f}, after {after:.1f}) = {model_fps:.2f} fps")
+        print(f"live loop:   {live_fps:.2f} fps drawn by viewer 1 of {args.viewers}" +
+              (f" = {100 * live_fps / model_fps:.1f} % of the model's" if args.viewers == 1 else ""))
+        lt = result["latency_ms"]
+        print(f"latency exposure -> drawn: p50 {lt['p50']} ms, p95 {lt['p95']} ms, max {lt['max']} ms over {lt['n']} frames; "
+              f"p50 - model = {result['latency_p50_minus_model_ms']} ms")
+        print(f"stage 1 runs {result['stage1_runs']}, views {result['view_runs']}; live ms per stage {status['ms']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""`rig live` put together: the rig's calibration and source cameras, the model, the frame source,
+the engine, the optional video of the output, and the server."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+from calibration.camera import CalibrationError, RigCalibration
+from rig.errors import ConfigError
+from rig.live.engine import LiveEngine
+from rig.live.source import ReplaySource, SessionSource
+
+
+def source_cameras(cfg) -> tuple[str, str]:
+    left, right = cfg.by_role("left"), cfg.by_role("right")
+    if left is None or right is None:
+        missing = " and ".join(r for r, c in (("left", left), ("right", right)) if c is None)
+        raise ConfigError(f"{cfg.path or 'config'}: live needs a camera with role = \"{missing}\" (the stereo pair the model renders from)")
+    return left.name, right.name
+
+
+def rig_calibration(cfg, calibration: Optional[Path], replay: Optional[ReplaySource], notes: Optional[list] = None) -> RigCalibration:
+    """The calibration the model renders with: --calibration, else the config's, else a replayed
+    take's copy, else (simulated cameras only) their exact models."""
+    path = calibration or (cfg.resolve(cfg.calibration) if cfg.calibration else None)
+    if path is not None:
+        try:
+            return RigCalibration.load(path)
+        except FileNotFoundError:
+            raise ConfigError(f"--calibration: {path}: no such file") from None
+        except (CalibrationError, ValueError, KeyError) as exc:
+            raise ConfigError(f"--calibration: {path}: not a calibration file ({exc})") from None
+    if replay is not None and replay.sequence.calibration is not None:
+        return replay.sequence.calibration
+    from rig.cameras.sim import take_truth
+
+    truth = take_truth(cfg)
+    if truth:
+        if notes is not None:
+            notes.append("no calibration named; the simulated cameras render with their exact models")
+        return RigCalibration.from_dict({"version": 1, "cameras": truth["simulator"]["cameras"]})
+    raise ConfigError(f"{cfg.path or 'config'}: no calibration (set rig.calibration, or give --calibration; `rig calibrate run` makes one)")
+
+
+def open_model(path: Optional[Path], providers, threads):
+    """The model as its two parts (stage 1 once per frame set, the view per viewer); default: the
+    shipped trained model."""
+    from inference.runtime import SplitPipeline
+
+    if path is None:
+        from inference.runtime.shipped import shipped_onnx
+
+        path = shipped_onnx()
+    if not Path(path).is_file():
+        raise ConfigError(f"--model: {path}: no such model file")
+    model = SplitPipeline(path, providers=providers, threads=threads)
+    if model.info.needs_depth:
+        raise ConfigError(f"{path}: this model uses the oracle backbone (ground-truth depth as input); live needs a model that sees only the images")
+    return model
+
+
+class LiveApp:
+    def __init__(self, engine: LiveEngine, recorder=None):
+        self.engine = engine
+        self.recorder = recorder
+        self.server = None
+
+    @classmethod
+    def build(cls, cfg, *, model: Optional[Path] = None, calibration: Optional[Path] = None, replay: Optional[Path] = None,
+              record_output: Optional[Path] = None, record_view: Optional[dict] = None, threads: Optional[int] = None,
+              providers=None, jpeg_quality: int = 85, notes=None) -> "LiveApp":
+        left, right = source_cameras(cfg)
+        replayed = ReplaySource(replay, left, right) if replay is not None else None
+        said: list[str] = []  # notes are printed once everything opened: a bad input stays one line
+        rig = rig_calibration(cfg, calibration, replayed, said)
+        for name in (left, right):
+            if name not in rig:
+                raise ConfigError(f"calibration has no camera '{name}' (it has: {', '.join(rig.names)})")
+        live_model = open_model(model, providers, threads)
+        recorder = None
+        if record_output is not None:
+            from rig.live.video import VideoWriter
+
+            if record_output.suffix.lower() not in (".mp4", ".mkv", ".mov"):
+                raise ConfigError(f"--record-output: {record_output}: give a .mp4 (or .mkv, .mov) file")
+            if record_output.exists():
+                raise ConfigError(f"--record-output: {record_output} exists; nothing is written over")
+            if not record_output.parent.is_dir():
+                raise ConfigError(f"--record-output: {record_output.parent}: no such folder")
+            recorder = VideoWriter(record_output, fps=cfg.trigger.rate_hz if cfg.trigger else 30.0)
+        for line in said:
+            if notes is not None:
+                notes(line)
+        source = replayed if replayed is not None else SessionSource(cfg, left, right, on_phase=notes)
+        engine = LiveEngine(source, rig, left, right, live_model, jpeg_quality=jpeg_quality, recorder=recorder, record_view=record_view)
+        return cls(engine, recorder)
+
+    def __enter__(self) -> "LiveApp":
+        self.engine.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.server is not None:
+            self.server.stop()
+        self.engine.stop()
+
+    def serve(self, host: str, port: int, token: Optional[str]):
+        from rig.live.server import serve
+
+        self.server = serve(self.engine, host, port, token)
+        return self.server
+
+    def summary(self) -> dict:
+        s = self.engine.status()
+        if self.recorder is not None:
+            s["record_output"] = {"path": str(self.recorder.path), "frames": self.recorder.frames, "codec": self.recorder.codec}
+        return s
