@@ -64,7 +64,8 @@ class _Prepared:
     version: int
     index: int
     capture_ns: int
-    feeds: dict  # the model's source inputs (images, intrinsics, poses)
+    feeds: Optional[dict]  # the model's source inputs (images, intrinsics, poses); None: not yet prepared
+    images: Optional[dict] = None  # the raw frames while `feeds` is None
 
 
 @dataclass
@@ -146,6 +147,16 @@ class LiveViewer:
             self.rendered_key = (version, self._viewpoint_id)
             return self._camera, self._viewpoint_id
 
+    def holding(self) -> bool:
+        """A rendered frame waits for it to take it."""
+        with self._cond:
+            return self._mailbox is not None
+
+    def ready(self) -> bool:
+        """Free for a new render: its last frame was taken (or it has none)."""
+        with self._cond:
+            return self._mailbox is None and not self._busy
+
     def deliver(self, frame: Optional[LiveFrame]) -> None:
         with self._cond:
             self._busy = False
@@ -188,6 +199,8 @@ class LiveEngine:
         self._threads: list[threading.Thread] = []
         self._current: Optional[_Stage1] = None
         self._model_lock = threading.Lock()  # held around every model run of the loop
+        self._busy_since: Optional[float] = None  # when the model started its current frame set
+        self._held = False
         self._errors: list[tuple[float, str]] = []
         # figures
         self.sets_in = 0
@@ -240,7 +253,11 @@ class LiveEngine:
     def model_held(self):
         """The model to the caller alone (the loop waits): to time it without the loop in the way."""
         with self._model_lock:
-            yield self.model
+            self._held = True  # sets are kept raw meanwhile (no preprocessing beside the caller's runs)
+            try:
+                yield self.model
+            finally:
+                self._held = False
 
     # --- rig.live.api.Engine ----------------------------------------------------------------------
     def add_viewer(self, message: Optional[dict] = None, internal: bool = False, png: bool = False) -> LiveViewer:
@@ -309,20 +326,45 @@ class LiveEngine:
                 continue
             self.sets_in += 1
             self.in_times.add(time.monotonic())
-            t0 = time.perf_counter()
-            try:
-                feeds = self.model.source_feeds(live.images[self.left.name], live.images[self.right.name], self.left, self.right)
-            except Exception as exc:
-                self._error(f"preprocess: {exc}")
+            feeds = self._prepare(live.images) if self._model_due_soon() else None
+            if feeds is False:
                 continue
-            self.prep_ms.add((time.perf_counter() - t0) * 1000.0)
             with self._slot_cond:
                 if self._slot is not None:
                     self.sets_dropped += 1
                 self._version += 1
-                self._slot = _Prepared(self._version, live.index, live.capture_ns, feeds)
+                self._slot = _Prepared(self._version, live.index, live.capture_ns, feeds, None if feeds else live.images)
                 self._slot_cond.notify_all()
             self.wake()
+
+    def _prepare(self, images: dict):
+        """The model's source inputs from a set's two frames (False after an error, reported)."""
+        t0 = time.perf_counter()
+        try:
+            feeds = self.model.source_feeds(images[self.left.name], images[self.right.name], self.left, self.right)
+        except Exception as exc:
+            self._error(f"preprocess: {exc}")
+            return False
+        self.prep_ms.add((time.perf_counter() - t0) * 1000.0)
+        return feeds
+
+    def _model_due_soon(self) -> bool:
+        """Whether the model may take the next set soon: then a set is prepared as it arrives, so
+        the model never waits for it. Sets that arrive while the model still has far to go are only
+        kept raw (most of them are replaced by newer ones before the model is free: preparing them
+        all would take CPU from the model)."""
+        if self._held:
+            return False
+        if self._busy_since is None:
+            return True
+        s1, view = self.stage1_ms.percentile(50), self.view_ms.percentile(50)
+        if s1 is None or view is None:
+            return True
+        with self._viewers_lock:
+            n = max(1, len(self._viewers))
+        period = 1.0 / max(self.in_times.rate(), 1.0)
+        left_s = (s1 + n * view) / 1000.0 - (time.monotonic() - self._busy_since)
+        return left_s <= 2.0 * period + (self.prep_ms.percentile(50) or 0.0) / 1000.0
 
     def _take_slot(self) -> Optional[_Prepared]:
         with self._slot_cond:
@@ -331,8 +373,20 @@ class LiveEngine:
 
     def _model_loop(self) -> None:
         while not self._stop.is_set():
+            with self._viewers_lock:
+                anyone = any(v.ready() for v in self._viewers.values())
+            if not anyone:  # nobody could take a frame now: no stage 1 for a set no one will see
+                self._wake.wait(0.05)
+                self._wake.clear()
+                continue
             prepared = self._take_slot()
+            if prepared is not None and prepared.feeds is None:
+                prepared.feeds = self._prepare(prepared.images)  # it arrived while the model was far from done
+                prepared.images = None
+                if prepared.feeds is False:
+                    continue
             if prepared is not None:
+                self._busy_since = time.monotonic()
                 t0 = time.perf_counter()
                 try:
                     with self._model_lock:
