@@ -30,8 +30,13 @@ def rig_calibration(cfg, calibration: Optional[Path], replay: Optional[ReplaySou
             raise ConfigError(f"--calibration: {path}: no such file") from None
         except (CalibrationError, ValueError, KeyError) as exc:
             raise ConfigError(f"--calibration: {path}: not a calibration file ({exc})") from None
-    if replay is not None and replay.sequence.calibration is not None:
-        return replay.sequence.calibration
+    if replay is not None:  # the take's own calibration copy (a simulated take: its exact cameras)
+        seq = replay.sequence
+        if seq.calibration is not None:
+            return seq.calibration
+        if seq.ground_truth is not None:
+            return seq.ground_truth
+        raise ConfigError(f"--replay: {seq.root} has no calibration.json (give --calibration)")
     from rig.cameras.sim import take_truth
 
     truth = take_truth(cfg)

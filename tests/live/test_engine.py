@@ -79,3 +79,25 @@ def test_a_new_viewpoint_shows_in_the_next_frames_and_a_bad_one_changes_nothing(
         assert v.describe()["viewpoint_id"] == vid
     finally:
         engine.remove_viewer(v)
+
+
+def test_a_camera_vanishing_shows_in_the_health_at_once_and_the_engine_goes_on(tiny_onnx):
+    from rig.cameras.sim import sim_rig_config
+    from rig.config import parse_config
+    from rig.live.app import LiveApp
+
+    data = sim_rig_config(2, 320, 180, fps=15.0)
+    data["cameras"][1]["sim"]["disconnect_after_s"] = 6.0  # the right camera
+    app = LiveApp.build(parse_config(data), model=tiny_onnx.path, threads=2)
+    with app:
+        engine = app.engine
+        viewer = engine.add_viewer()
+        assert viewer.next_frame(60) is not None and engine.status()["health"]["ok"]
+        session = engine.source.session
+        wait_until(lambda: any(e.kind == "camera_lost" for e in session.events), timeout=30, what="the camera to vanish")
+        seen = time.monotonic()
+        health = wait_until(lambda: (h := engine.status()["health"]) and not h["ok"] and h, timeout=2.0, what="the health to say so")
+        assert time.monotonic() - seen < 2.0
+        assert any("right" in m for m in health["messages"]), health
+        time.sleep(1.0)
+        assert engine.status()["uptime_s"] > 0 and viewer.describe()["id"] == viewer.id  # still serving
