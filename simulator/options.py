@@ -34,6 +34,7 @@ CAMERA_OPTIONS: dict[str, tuple] = {
     "bayer": (str, None, None, "", "deliver raw Bayer (RG, GR, GB, BG); empty = as pixel_format says"),
     "seed": (int, 0, 2**31 - 1, 0, "random seed of this sensor's noise, drops and jitter"),
     "disconnect_after_s": (float, 0.0, 1e9, 0.0, "the camera vanishes this long after it starts (0 = never)"),
+    "reconnect_after_s": (float, 0.0, 1e9, 0.0, "a vanished camera comes back this long after it vanished (0 = never)"),
 }
 
 TRIGGER_OPTIONS: dict[str, tuple] = {

@@ -124,6 +124,14 @@ class FrameGrouper:
         with self._lock:
             self.tracks[name].alive = False
 
+    def camera_back(self, name: str) -> None:
+        """The camera delivers again (a new acquisition: its frame ids start afresh)."""
+        with self._lock:
+            track = self.tracks[name]
+            track.alive = True
+            track.last_seen_id = None
+            track.pending.clear()
+
     def add_frame(self, frame: Frame) -> None:
         with self._lock:
             track = self.tracks.get(frame.camera)

@@ -76,6 +76,12 @@ class Camera(abc.ABC):
     def close(self) -> None:
         """Release the device. Safe to call twice."""
 
+    def reconnect(self) -> bool:
+        """After get_frame reported CameraDisconnected: try once to get the device back and
+        acquiring with the same settings (the session calls it about once a second). True when it
+        is back. Backends that cannot tell keep the default: the camera stays lost."""
+        return False
+
     # frames --------------------------------------------------------------------------------------
     def get_frame(self, timeout: float = 1.0) -> Frame:
         """The next frame; raises CameraTimeout or CameraDisconnected. Counts gaps in frame ids."""

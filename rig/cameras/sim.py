@@ -94,6 +94,8 @@ class SimCamera(Camera):
         self._running = False
         self._closed = False
         self._unplugged = False
+        self._back_at: Optional[float] = None
+        self._vanished_once = False
         self._thread: Optional[threading.Thread] = None
         self._frame_counter = 0
         self._start_ns = 0
@@ -160,9 +162,28 @@ class SimCamera(Camera):
 
     def unplug(self) -> None:
         """Make the camera vanish as if its cable were pulled: frames stop, get_frame reports it."""
+        back = self.opts["reconnect_after_s"]
+        self._back_at = time.monotonic() + back if back > 0 else None
         self._unplugged = True
         with self._cv:
             self._cv.notify_all()
+
+    def reconnect(self) -> bool:
+        """A vanished camera is back once `reconnect_after_s` has passed: acquisition restarts with
+        the same settings (frames queued before it vanished are gone, as with a real device)."""
+        if not self._unplugged:
+            return True
+        if self._closed or self._back_at is None or time.monotonic() < self._back_at:
+            return False
+        self.stop()
+        while not self._out.empty():
+            self._out.get_nowait()
+        with self._cv:
+            self._requests.clear()
+            self._unplugged = False
+        self._vanished_once = True  # it does not vanish again on its own
+        self.start()
+        return True
 
     # --- triggers --------------------------------------------------------------------------------
     def software_trigger(self) -> None:
@@ -210,7 +231,7 @@ class SimCamera(Camera):
 
     def _run(self) -> None:
         vanish = self.opts["disconnect_after_s"]
-        if vanish > 0:
+        if vanish > 0 and not self._vanished_once:
             timer = threading.Timer(vanish, self.unplug)
             timer.daemon = True
             timer.start()

@@ -342,12 +342,29 @@ class RigSession:
                 if self._running.is_set():
                     self._event("camera_lost", str(exc), {"camera": name})
                 self.grouper.camera_lost(name)
-                return
+                if not (self.resume and self._await_camera(name, cam)):
+                    return
+                continue
             self.frames_delivered[name] += 1
             self.grouper.add_frame(frame)
             if self._follow_reference and name == self.grouper.reference:
                 self._soft_triggers.put(None)  # software cameras expose right after the reference frame
             self._wake.set()
+
+    def _await_camera(self, name: str, cam) -> bool:
+        """Until the session stops, ask a lost camera about once a second whether it is back; True
+        when it is (its sets fill again)."""
+        while self._running.is_set():
+            time.sleep(1.0)
+            try:
+                back = cam.reconnect()
+            except Exception:  # noqa: BLE001 - a backend failing to reopen: still lost, try again
+                back = False
+            if back and self._running.is_set():
+                self.grouper.camera_back(name)
+                self._event("camera_back", f"camera {name} is back", {"camera": name})
+                return True
+        return False
 
     def _pump(self) -> None:
         while self._running.is_set():

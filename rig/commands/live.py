@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import secrets
 import signal
 import sys
@@ -37,15 +36,6 @@ def view_message(text: str) -> dict:
         return {"type": "viewpoint", "preset": text}
 
 
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def cmd_live(args: argparse.Namespace) -> int:
     from rig.commands._output import emit_json
     from rig.config import load_config
@@ -65,7 +55,9 @@ def cmd_live(args: argparse.Namespace) -> int:
     token = args.token
     if token is not None and len(token) < 8:
         raise ConfigError("live: --token must be at least 8 characters")
-    if token is None and not is_loopback(host):
+    from rig.live.server import is_loopback_name
+
+    if token is None and not is_loopback_name(host):
         token = secrets.token_urlsafe(18)  # a non-loopback bind is never open
     notes = Notes(quiet=False)
     app = LiveApp.build(cfg, model=args.model, calibration=args.calibration, replay=args.replay,

@@ -85,7 +85,7 @@ def _host_name(host_header: str) -> str:
     return host.rpartition(":")[0] if host.count(":") == 1 else host
 
 
-def _is_loopback_name(name: str) -> bool:
+def is_loopback_name(name: str) -> bool:
     if name == "localhost":
         return True
     try:
@@ -132,7 +132,7 @@ class AccessGuard:
         headers = _headers(scope)
         if self.token is None:
             host = _host_name(headers.get("host", ""))
-            if host and not _is_loopback_name(host):  # (no Host at all: not a browser, nothing to rebind)
+            if host and not is_loopback_name(host):  # (no Host at all: not a browser, nothing to rebind)
                 return await self._deny(scope, receive, send, 403, "this server has no token and answers on a loopback address only")
         elif not any(_token_matches(c, self.token) for c in _candidates(scope, headers)):
             return await self._deny(scope, receive, send, 401, "a valid token is needed (?token=, or Authorization: Bearer)")
