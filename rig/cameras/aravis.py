@@ -243,6 +243,29 @@ class AravisCamera(Camera):
         self._dev = None
         self._cam = None
 
+    def reconnect(self) -> bool:
+        """Open the device again by the same address or id (a camera powered back on or plugged in
+        again), apply the same settings and restart acquisition. False while it does not answer."""
+        if self._closed:
+            return False
+        if not self._lost and self._running:
+            return True
+        self.stop()
+        try:
+            cam = self._Aravis.Camera.new(self.device_name)
+        except Exception:  # GLib.Error: not there (yet)
+            return False
+        self._cam, self._dev = cam, cam.get_device()
+        self._lost = False
+        self._last_frame_id = None  # a new acquisition: the device counts frames afresh
+        try:
+            self._configure()
+            self.start()
+        except (DeviceError, ConfigError):
+            self._lost, self._running = True, False
+            return False
+        return True
+
     # --- frames ----------------------------------------------------------------------------------
     def software_trigger(self) -> None:
         if self._closed or self._lost:

@@ -114,3 +114,31 @@ def test_camera_killed_mid_grab_keeps_written_frames(fake_camera, tmp_path):
         img = cv2.imread(str(out / r["file"]), cv2.IMREAD_UNCHANGED)
         assert img is not None and img.shape == (480, 640)
     assert not list(out.rglob("*.part.png"))
+
+
+def test_a_camera_powered_off_and_on_again_is_reconnected(fake_camera):
+    from rig.errors import CameraDisconnected, CameraTimeout
+    from tests.rig.conftest import FakeCamera
+
+    cfg = CameraConfig(name="left", uri=fake_camera.uri, width=320, height=240, pixel_format="Mono8", fps=100.0, trigger="free")
+    with open_camera(cfg) as cam:
+        cam.start()
+        assert cam.get_frame(2.0).image.shape == (240, 320)
+        fake_camera.kill()  # powered off
+        deadline = time.monotonic() + 20
+        with pytest.raises(CameraDisconnected):
+            while time.monotonic() < deadline:
+                try:
+                    cam.get_frame(0.5)
+                except CameraTimeout:
+                    pass
+        assert cam.reconnect() is False  # nothing answers at its address
+        again = FakeCamera()  # powered on again, same address
+        try:
+            assert cam.reconnect() is True
+            frames = [cam.get_frame(2.0) for _ in range(10)]
+            assert all(f.image.shape == (240, 320) for f in frames)  # the same settings as before
+            ids = [f.frame_id for f in frames]
+            assert ids == sorted(ids)
+        finally:
+            again.kill()
