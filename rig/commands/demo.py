@@ -184,14 +184,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     novel = out / "novel-views"
     from inference.errors import InferenceError
 
-    strip = orbit = None
     try:
         nv = render_novel_views(take, novel)
-        strip = render_strip(take, out / "novel-strip.png")
-        orbit = _run(["model", "render", "--sequence", str(take), "--orbit", "--frames", str(min(ORBIT_FRAMES, rec["sets"])),
-                      "-o", str(out / "orbit.mp4")])
     except InferenceError as exc:  # an installation without the shipped model
-        nv = {"skipped": str(exc)}
+        nv = {"skipped": str(exc), "no_model": True}
     if "skipped" in nv:
         print(f"5/5  novel views: skipped: {nv['skipped']}")
     else:
@@ -199,7 +195,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
               f"from left + right, {nv['ms_per_view']:.0f} ms each")
         print(f"     PSNR against the real cameras {nv['psnr']:.2f} dB (the nearer source as it is: {nv['nearer_source_psnr']:.2f} dB); "
               f"PNGs (novel | real) in {novel}/")
-    if orbit is not None:
+    if not nv.get("no_model"):
+        try:
+            strip = render_strip(take, out / "novel-strip.png")
+        except InferenceError as exc:  # an installation without the shipped model
+            print(f"     orbit and strip: skipped: {exc}")
+            strip = None
+    if not nv.get("no_model") and strip is not None:
+        orbit = _run(["model", "render", "--sequence", str(take), "--orbit", "--frames", str(min(ORBIT_FRAMES, rec["sets"])),
+                      "-o", str(out / "orbit.mp4")])
         print(f"     orbit video, left to right over the take: {orbit['output']} ({orbit['frames']} frames, {orbit['codec']}); "
               f"strip (left | t = 0.25, 0.5, 0.75 | right): {strip['file']}")
     print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")
