@@ -302,6 +302,18 @@ CASES: list[Case] = [
     C("model eval: garbage model", ["model", "eval", "--model", "garbage.bin", "--sequence", "take"], 2, "garbage.bin", ("take", "garbage.bin"), max_s=60),
     C("model eval: missing model", ["model", "eval", "--model", "none.pt", "--sequence", "take"], 2, "none.pt", ("take",), max_s=60),
     C("model bench: --repeat 0", ["model", "bench", "--size", "test", "--repeat", "0"], 2, "repeat", max_s=30),
+    # rig live (checked before the rig starts) and rig model render
+    C("live: garbage model", ["live", "-c", "rig.toml", "--model", "garbage.bin", "--seconds", "1"], 2, "garbage", ("rig.toml", "garbage.bin"), max_s=30),
+    C("live: missing model", ["live", "-c", "rig.toml", "--model", "none.onnx", "--seconds", "1"], 2, "none.onnx", RIG, max_s=30),
+    C("live: short token", ["live", "-c", "rig.toml", "--token", "abc", "--seconds", "1"], 2, "--token", RIG, max_s=30),
+    C("live: port 70000", ["live", "-c", "rig.toml", "--port", "70000", "--seconds", "1"], 2, "--port", RIG, max_s=30),
+    C("live: video over an existing file", ["live", "-c", "rig.toml", "--record-output", "garbage.bin", "--seconds", "1"], 2, "--record-output",
+      ("rig.toml", "garbage.bin"), max_s=30),
+    C("live: replay of a non-sequence", ["live", "-c", "rig.toml", "--replay", "notes.txt", "--seconds", "1"], 2, "--replay", RIG, max_s=30),
+    C("model render: missing sequence", ["model", "render", "--sequence", "nope", "--view", "0.5", "-o", "v.png"], 2, "nope", max_s=30),
+    C("model render: unknown camera", ["model", "render", "--sequence", "take", "--view", "cam9", "-o", "v.png"], 2, "cam9", TAKE, max_s=30),
+    C("model render: set out of range", ["model", "render", "--sequence", "take", "--set", "99999", "--view", "0.5", "-o", "v.png"], 2, "99999", TAKE, max_s=30),
+    C("model render: unwritable output", ["model", "render", "--sequence", "take", "--view", "0.5", "-o", f"{UNWRITABLE}/v.png"], 2, "/proc", TAKE, max_s=30),
     # rig demo (arguments checked before the 20 s calibration)
     C("demo: one camera", ["demo", "--cameras", "1", "-o", "d"], 2, "cameras", max_s=15, point="6"),
     C("demo: --seconds -1", ["demo", "--seconds", "-1", "-o", "d"], 2, "seconds", max_s=15, fast=True, point="6"),
