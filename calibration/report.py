@@ -88,7 +88,10 @@ def rectification(left: CameraModel, right: CameraModel, alpha: float | None = N
 
 
 def epipolar_error(left: CameraModel, right: CameraModel, pairs: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, Any] | None:
-    """Vertical disparity of matched corners after rectification (0 for a perfect calibration).
+    """Residual of matched corners across the epipolar lines after rectification (0 for a perfect
+    calibration): the row difference for a side-by-side pair, the column difference for a pair one
+    above the other (OpenCV rectifies a pair whose baseline is mostly vertical along columns; its
+    row difference is then the disparity, not an error).
 
     Measured in pixels of the left camera's focal length: the rectified images' own focal length
     depends on how far they are zoomed (strongly verged pairs zoom a lot) and would inflate the figure.
@@ -96,21 +99,22 @@ def epipolar_error(left: CameraModel, right: CameraModel, pairs: list[tuple[np.n
     if not pairs:
         return None
     rect = rectification(left, right)
-    f = left.fy
-    dy = []
+    vertical = abs(rect["P2"][1, 3]) > abs(rect["P2"][0, 3])  # the baseline along the rectified y axis
+    axis = 0 if vertical else 1
+    f = left.fx if vertical else left.fy
+    d = []
     for pl, pr in pairs:
-        yl = _rectified_y(left, rect["R1"], pl)
-        yr = _rectified_y(right, rect["R2"], pr)
-        dy.append(f * (yl - yr))
-    d = np.concatenate(dy)
-    return {"rms_px": float(np.sqrt(np.mean(d * d))), "max_px": float(np.abs(d).max()), "points": int(d.size), "views": len(pairs)}
+        d.append(f * (_rectified(left, rect["R1"], pl)[:, axis] - _rectified(right, rect["R2"], pr)[:, axis]))
+    d = np.concatenate(d)
+    return {"rms_px": float(np.sqrt(np.mean(d * d))), "max_px": float(np.abs(d).max()), "points": int(d.size), "views": len(pairs),
+            "measured_along": "x (a vertical pair)" if vertical else "y"}
 
 
-def _rectified_y(cam: CameraModel, R_rect: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Normalised y of pixels after undistortion and the rectifying rotation."""
+def _rectified(cam: CameraModel, R_rect: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Normalised (x, y) of pixels after undistortion and the rectifying rotation."""
     xy = cam.undistort_normalized(uv, iterations=50)
     rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R_rect.T
-    return rays[:, 1] / rays[:, 2]
+    return rays[:, :2] / rays[:, 2:3]
 
 
 def _r(x: float | None, n: int = 4):
@@ -243,6 +247,7 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "baseline_m": _r(baseline, 6),
             "epipolar_rms_px": _r(epi["rms_px"]) if epi else None,
             "epipolar_max_px": _r(epi["max_px"]) if epi else None,
+            "epipolar_along": epi["measured_along"] if epi else None,
         }
         if len(common) < MIN_STEREO_VIEWS:
             warnings.append(
