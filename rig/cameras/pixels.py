@@ -15,7 +15,7 @@ from common.bayer import demosaic, mosaic
 BAYER_FORMATS = ("BayerRG8", "BayerGR8", "BayerGB8", "BayerBG8")
 BYTES_PER_PIXEL = {"Mono8": 1, "Mono16": 2, "RGB8": 3, "BayerRG8": 1, "BayerGR8": 1, "BayerGB8": 1, "BayerBG8": 1}
 
-__all__ = ["BAYER_FORMATS", "BYTES_PER_PIXEL", "buffer_to_image", "demosaic", "from_rgb", "is_bayer", "mosaic"]
+__all__ = ["BAYER_FORMATS", "BYTES_PER_PIXEL", "buffer_to_image", "demosaic", "from_rgb", "is_bayer", "mosaic", "rgb8"]
 
 
 def is_bayer(pixel_format: str) -> bool:
@@ -40,6 +40,15 @@ def buffer_to_image(data, width: int, height: int, pixel_format: str, copy: bool
     if is_bayer(pixel_format):
         return demosaic(mono, pixel_format)
     return keep(mono)
+
+
+def rgb8(image: np.ndarray) -> np.ndarray:
+    """A frame's image as RGB uint8, what the model takes: mono repeated, 16-bit shifted down."""
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    return image
 
 
 def from_rgb(rgb: np.ndarray, pixel_format: str) -> np.ndarray:

@@ -20,10 +20,8 @@ def render_novel_views(take: Path, out_dir: Path, sets: int = 3, model: Path | N
     from rig.storage.dataset import Sequence
 
     seq = Sequence(take)
-    roles = {c.name: c.role for c in seq.meta.cameras}
-    left = next(n for n, r in roles.items() if r == "left")
-    right = next(n for n, r in roles.items() if r == "right")
-    sups = [n for n, r in roles.items() if r == "supervision"]
+    left, right = seq.sources()
+    sups = seq.supervision
     if not sups:
         return {"skipped": "the rig has no supervision camera to compare a novel view with"}
     pipe = NovelViewPipeline(model)  # None: the shipped model
@@ -63,9 +61,7 @@ def render_strip(take: Path, out_png: Path, ts: tuple[float, ...] = (0.25, 0.5, 
     from rig.storage.dataset import Sequence
 
     seq = Sequence(take)
-    roles = {c.name: c.role for c in seq.meta.cameras}
-    left = next(n for n, r in roles.items() if r == "left")
-    right = next(n for n, r in roles.items() if r == "right")
+    left, right = seq.sources()
     pipe = NovelViewPipeline(model)
     complete = seq.complete_sets([left, right])
     s = seq.sample(complete[len(complete) // 2], [left, right])

@@ -373,17 +373,15 @@ def _render_source(args: argparse.Namespace):
     if (root / "dataset.json").is_file():
         raise ConfigError(f"--sequence {root}: is a data set of several takes; name one of them")
     seq = Sequence(root)
-    roles = {c.role: c.name for c in seq.meta.cameras if c.role in ("left", "right")}
-    if "left" not in roles or "right" not in roles:
-        raise SequenceError(f"{root}: the sequence has no camera with role left and one with role right (the model's sources)")
+    left, right = seq.sources()
     cameras = []
     for name in seq.camera_names:
         try:
             cameras.append(seq.camera_model(name))
         except SequenceError:
-            if name in (roles["left"], roles["right"]):
+            if name in (left, right):
                 raise
-    return seq, roles["left"], roles["right"], RigCalibration(cameras)
+    return seq, left, right, RigCalibration(cameras)
 
 
 def _viewpoint_message(args: argparse.Namespace, view: str | float) -> dict:

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel, RigCalibration
+from rig.cameras.pixels import rgb8
 from rig.live.api import LiveFrame
 from rig.live.viewpoint import Viewpoint, parse_viewpoint, presets
 
@@ -341,7 +342,7 @@ class LiveEngine:
         """The model's source inputs from a set's two frames (False after an error, reported)."""
         t0 = time.perf_counter()
         try:
-            feeds = self.model.source_feeds(images[self.left.name], images[self.right.name], self.left, self.right)
+            feeds = self.model.source_feeds(rgb8(images[self.left.name]), rgb8(images[self.right.name]), self.left, self.right)
         except Exception as exc:
             self._error(f"preprocess: {exc}")
             return False
@@ -412,7 +413,7 @@ class LiveEngine:
                     t0 = time.perf_counter()
                     try:
                         with self._model_lock:
-                            image = self.model.render(cur.outputs, cur.feeds, camera).image
+                            view = self.model.render(cur.outputs, cur.feeds, camera)
                     except Exception as exc:
                         viewer.deliver(None)
                         self._error(f"model view: {exc}")
@@ -420,7 +421,7 @@ class LiveEngine:
                     self.view_ms.add((time.perf_counter() - t0) * 1000.0)
                     self.view_runs += 1
                     rendered = True
-                    self._encode_q.put((viewer, cur.index, vp_id, cur.capture_ns, image))
+                    self._encode_q.put((viewer, cur.index, vp_id, cur.capture_ns, view))
             if not rendered and self._slot is None:
                 self._wake.wait(0.05)
                 self._wake.clear()
@@ -428,11 +429,11 @@ class LiveEngine:
     def _encode_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                viewer, index, vp_id, capture_ns, image = self._encode_q.get(timeout=0.2)
+                viewer, index, vp_id, capture_ns, view = self._encode_q.get(timeout=0.2)
             except queue.Empty:
                 continue
             t0 = time.perf_counter()
-            rgb = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            rgb = view.image_uint8()
             bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
             if viewer.png:
                 ok, data = cv2.imencode(".png", bgr)

@@ -18,7 +18,7 @@ from rig.errors import ConfigError
 class LiveSet:
     index: int  # increasing; gaps are sets the source dropped or that lacked a source frame
     capture_ns: int  # exposure time, host monotonic clock
-    images: dict[str, np.ndarray]  # RGB uint8 per source camera
+    images: dict[str, np.ndarray]  # per source camera, as the camera delivered it (rig.cameras.pixels.rgb8 makes it RGB)
 
 
 @dataclass
@@ -28,15 +28,6 @@ class Health:
 
     def to_dict(self) -> dict:
         return {"ok": self.ok, "messages": list(self.messages)}
-
-
-def as_rgb(image: np.ndarray) -> np.ndarray:
-    """A frame's image as RGB uint8 (mono frames repeated, 16-bit frames shifted down)."""
-    if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
-    if image.ndim == 2:
-        image = np.repeat(image[:, :, None], 3, axis=2)
-    return image
 
 
 class SessionSource:
@@ -67,7 +58,7 @@ class SessionSource:
             self.incomplete += 1
             return None
         capture = fs.host_ts_ns if fs.host_ts_ns is not None else min(left.host_ts_ns, right.host_ts_ns)
-        return LiveSet(fs.index, int(capture), {self.left: as_rgb(left.image), self.right: as_rgb(right.image)})
+        return LiveSet(fs.index, int(capture), {self.left: left.image, self.right: right.image})
 
     @property
     def finished(self) -> bool:
@@ -161,7 +152,7 @@ class ReplaySource:
         index = self._lap * len(self.sequence) + pos
         self._k += 1
         sample = self.sequence.sample(pos, [self.left, self.right])
-        return LiveSet(index, int(due * 1e9), {n: as_rgb(sample.images[n]) for n in (self.left, self.right)})
+        return LiveSet(index, int(due * 1e9), {n: sample.images[n] for n in (self.left, self.right)})
 
     @property
     def finished(self) -> bool:

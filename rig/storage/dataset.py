@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from calibration.camera import CameraModel, RigCalibration
+from rig.cameras.pixels import rgb8
 from rig.storage.index import scan_index
 from rig.storage.layout import CALIBRATION_COPY, SequenceError, SequenceMeta
 from rig.storage.netpbm import NetpbmError, read_netpbm
@@ -54,6 +55,18 @@ class Sequence:
     @property
     def camera_names(self) -> list[str]:
         return [c.name for c in self.meta.cameras]
+
+    def sources(self) -> tuple[str, str]:
+        """The cameras with roles left and right (the model's sources)."""
+        roles = {c.role: c.name for c in self.meta.cameras if c.role in ("left", "right")}
+        if "left" not in roles or "right" not in roles:
+            raise SequenceError(f"{self.root}: the sequence has no camera with role left and one with role right (the model's sources)")
+        return roles["left"], roles["right"]
+
+    @property
+    def supervision(self) -> list[str]:
+        """The cameras with role supervision, in the take's order."""
+        return [c.name for c in self.meta.cameras if c.role == "supervision"]
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -108,11 +121,7 @@ class Sequence:
                 raise SequenceError(f"{path}: missing; `rig record validate {self.root}` lists every damaged frame") from None
             except NetpbmError as exc:
                 raise SequenceError(f"{exc}; `rig record validate {self.root}` lists every damaged frame") from None
-            img = self.meta.camera(n).decoded(stored)
-            if img.ndim == 2:
-                img = np.repeat(img[:, :, None], 3, axis=2)
-            if img.dtype == np.uint16:
-                img = (img >> 8).astype(np.uint8)
+            img = rgb8(self.meta.camera(n).decoded(stored))
             if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
                 img = _resize(img, size)
             images[n] = img
@@ -154,11 +163,8 @@ class TrainingSet:
             raise SequenceError("no sequence given")
         self.sequences = [Sequence(r) for r in roots]
         first = self.sequences[0]
-        roles = {c.role: c.name for c in first.meta.cameras if c.role in ("left", "right")}
-        if "left" not in roles or "right" not in roles:
-            raise SequenceError(f"{first.root}: the sequence has no camera with role left and one with role right")
-        self.left, self.right = roles["left"], roles["right"]
-        self.supervision = [c.name for c in first.meta.cameras if c.role == "supervision"]
+        self.left, self.right = first.sources()
+        self.supervision = first.supervision
         if not self.supervision:
             raise SequenceError(f"{first.root}: the sequence has no supervision camera (training renders the sources into them)")
         names = [self.left, self.right] + self.supervision
