@@ -37,7 +37,9 @@ def register(sub) -> None:
     p = sub.add_parser("demo", help="run the main job on the simulated rig: calibrate, record, validate, render novel views with the shipped model "
                             "(no hardware needed)",
                        description="Calibrate a simulated rig, record a take with the calibration and validate it, running the same "
-                                   "commands a user runs on a real rig. Writes a few hundred MB by default (it says how much first).")
+                                   "commands a user runs on a real rig; then render novel views of the take with the shipped model "
+                                   "(PNGs against the supervision cameras, an orbit video and a strip) and print how to run the rig "
+                                   "live. Writes a few hundred MB by default (it says how much first).")
     p.add_argument("-o", "--out", type=Path, default=Path("out/demo"), help="working folder, new or empty (default out/demo)")
     p.add_argument("--cameras", type=int, default=6, help=f"cameras in the simulated rig, 2 to {MAX_CAMERAS} (default 6: 2 sources + 4 supervision)")
     p.add_argument("--width", type=int, default=640)

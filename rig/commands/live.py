@@ -10,7 +10,11 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("live", help="serve the live novel view of the rig to browsers (and MJPEG, snapshots, a video file)")
+    p = sub.add_parser("live", help="serve the live novel view of the rig to browsers (and MJPEG, snapshots, a video file)",
+                       description="Run the rig (or replay a recorded take) through the model and serve the novel view at "
+                                   "http://HOST:PORT/: a page with a slider between the two sources, a button per calibrated "
+                                   "camera, orbit and zoom, and live figures; also /status, /snapshot.png, /mjpeg. Routes, wire "
+                                   "format and access rules: docs/live.md.")
     p.add_argument("-c", "--config", type=Path, required=True, help="rig configuration (TOML): cameras, trigger, [live] address")
     p.add_argument("--model", type=Path, help="exported model (rig model export); default: the shipped trained model")
     p.add_argument("--calibration", type=Path, help="calibration file (default: the config's rig.calibration)")

@@ -13,7 +13,7 @@ SIZES = ("preview", "paper", "test")
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("model", help="export, check and benchmark the Splat-SAP model",
+    p = subparsers.add_parser("model", help="export, check, benchmark, evaluate and render with the Splat-SAP model",
                               description="The Splat-SAP free-viewpoint model: ONNX export, torch-vs-ONNX-Runtime check, per-stage benchmark.")
     sub = p.add_subparsers(dest="model_command", metavar="SUBCOMMAND")
     sub.required = True
