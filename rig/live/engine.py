@@ -8,8 +8,9 @@ Three threads, so that the model never waits for a frame:
   viewpoint-dependent part once for each viewer that is ready for a frame, at its newest viewpoint;
 - encoder: JPEG-encodes each rendered view into its viewer's one-frame mailbox.
 
-A viewer is "ready" when its mailbox is empty: the server takes a frame only when the browser has
-credit, so a slow browser gets fewer renders and never holds the model or the other viewers.
+A viewer is ready for the next set when its mailbox is empty (its last view may still be in the
+encoder: stage 1 of the next set starts meanwhile): the server takes a frame only when the browser
+has credit, so a slow browser gets fewer renders and never holds the model or the other viewers.
 """
 from __future__ import annotations
 
@@ -153,10 +154,13 @@ class LiveViewer:
         with self._cond:
             return self._mailbox is not None
 
-    def ready(self) -> bool:
-        """Free for a new render: its last frame was taken (or it has none)."""
+    def ready_soon(self) -> bool:
+        """Free for a new render, or about to be: its last frame was taken (or it has none), or its
+        last render is in the encoder (a few ms from its mailbox, which the server empties at once
+        while the browser has credit). Stage 1 of the next set starts meanwhile, so the model does
+        not wait for the encoder and the hand-off."""
         with self._cond:
-            return self._mailbox is None and not self._busy
+            return self._mailbox is None
 
     def deliver(self, frame: Optional[LiveFrame]) -> None:
         with self._cond:
@@ -208,6 +212,7 @@ class LiveEngine:
         self.sets_dropped = 0  # preprocessed sets replaced by a newer one before the model took them
         self.stage1_runs = 0
         self.view_runs = 0
+        self.sets_prepared_late = 0  # sets the model had to preprocess itself (it came free sooner than expected)
         self.in_times = _Window(256)
         self.stage1_ms = _Window()
         self.view_ms = _Window()
@@ -301,6 +306,7 @@ class LiveEngine:
             "sets_in": self.sets_in,
             "sets_dropped": self.sets_dropped,
             "sets_incomplete": getattr(self.source, "incomplete", 0),
+            "sets_prepared_late": self.sets_prepared_late,
             "stage1_runs": self.stage1_runs,
             "view_runs": self.view_runs,
             "last_set": cur.index if cur is not None else None,
@@ -375,13 +381,14 @@ class LiveEngine:
     def _model_loop(self) -> None:
         while not self._stop.is_set():
             with self._viewers_lock:
-                anyone = any(v.ready() for v in self._viewers.values())
-            if not anyone:  # nobody could take a frame now: no stage 1 for a set no one will see
+                anyone = any(v.ready_soon() for v in self._viewers.values())
+            if not anyone:  # nobody could take a frame soon: no stage 1 for a set no one will see
                 self._wake.wait(0.05)
                 self._wake.clear()
                 continue
             prepared = self._take_slot()
             if prepared is not None and prepared.feeds is None:
+                self.sets_prepared_late += 1
                 prepared.feeds = self._prepare(prepared.images)  # it arrived while the model was far from done
                 prepared.images = None
                 if prepared.feeds is False:
