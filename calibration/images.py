@@ -89,6 +89,31 @@ def find_images(root: str | Path) -> ImageSet:
     return ImageSet(root, paths, _read_roles(root / "roles.json", paths))
 
 
+def find_camera_images(root: str | Path, cameras: list[str] | None = None) -> ImageSet:
+    """Each camera's own images (no instants shared between cameras): DIR/CAMNAME/* for several
+    cameras, or one camera's images directly in DIR, named after DIR. `cameras`: only these."""
+    root = Path(root)
+    if not root.is_dir():
+        raise CalibrationError(f"{root}: no such image folder")
+    paths: dict[str, dict[str, Path]] = {}
+    for d in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        files = {f.stem: f for f in sorted(d.iterdir()) if _is_image(f)}
+        if files:
+            paths[d.name] = files
+    if not paths:
+        files = {f.stem: f for f in sorted(root.iterdir()) if _is_image(f)}
+        if files:
+            paths[root.resolve().name] = files
+    if not paths:
+        raise CalibrationError(f"{root}: no images (expected {root}/CAMNAME/*.png|jpg, or one camera's images in {root})")
+    if cameras:
+        missing = [c for c in cameras if c not in paths]
+        if missing:
+            raise CalibrationError(f"{root}: no images of camera {', '.join(repr(c) for c in missing)} (cameras: {', '.join(paths)})")
+        paths = {c: paths[c] for c in cameras}
+    return ImageSet(root, paths)
+
+
 def _read_roles(path: Path, paths: dict) -> dict[str, str]:
     if not path.exists():
         return {}

@@ -35,11 +35,29 @@ def register(subparsers) -> None:
     r.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto",
                    help="third radial term: hold it at 0 (ordinary lenses, under ~90 degrees across: it is poorly observable "
                         "and fitted values are noise), fit it (wide-angle lenses), or auto: fit it from 10 views per camera (default)")
-    r.add_argument("--tangential", choices=("fit", "hold"), default="fit",
-                   help="tangential terms p1 p2: fit them (default) or hold them at 0 (lenses known to be centred)")
+    r.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto",
+                   help="tangential terms p1 p2: hold them at 0 (lenses centred on the sensor), fit them, or auto: "
+                        "fit them from 10 views per camera (default)")
     r.add_argument("--force", action="store_true", help="replace an existing calibration file")
     r.add_argument("--json", action="store_true", help="print one JSON object with the results")
     r.set_defaults(func=cmd_run)
+
+    i = sub.add_parser("intrinsics", help="calibrate each camera's lens from its own board session",
+                       description="Each camera's intrinsics from its own close-up board views: DIR/CAMNAME/*.png|jpg, or one "
+                                   "camera's images directly in DIR (named after DIR). Views that do not fit are rejected with one "
+                                   "reason; the focal length's spread over subsets of the views, the board's coverage and a verdict "
+                                   "(good / weak / unusable) are reported per camera.")
+    i.add_argument("--images", required=True, metavar="DIR", help="image folder")
+    i.add_argument("--board", required=True, metavar="BOARD.toml", help="board description")
+    i.add_argument("-o", "--output", required=True, metavar="intrinsics.json", help="file to write")
+    i.add_argument("--camera", action="append", metavar="NAME", help="only this camera (repeatable; default: every camera)")
+    i.add_argument("--outlier-px", type=float, default=1.0,
+                   help="reject views whose RMS exceeds max(this, 5 x the other views' median) (default 1.0)")
+    i.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto", help="third radial term, as for `run` (default auto)")
+    i.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto", help="p1 p2, as for `run` (default auto)")
+    i.add_argument("--force", action="store_true", help="replace an existing file")
+    i.add_argument("--json", action="store_true", help="print one JSON object with the results")
+    i.set_defaults(func=cmd_intrinsics)
 
     c = sub.add_parser("capture", help="collect calibration views from the rig",
                        description="Show the board to the rig; views that add coverage are kept as DIR/CAMNAME/NNNN.png for `rig calibrate run`.")
@@ -129,7 +147,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
     status.done()
     opts = Options(left=args.left or images.roles.get("left"), right=args.right or images.roles.get("right"), outlier_px=args.outlier_px,
-                   fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential=args.tangential == "hold")
+                   fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential={"auto": None, "hold": True, "fit": False}[args.tangential])
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
     rig = result.rig
@@ -188,6 +206,75 @@ def save_keeping(rig, output: Path) -> tuple[Path | None, str | None]:
         except OSError:
             continue
     return None, why
+
+
+def cmd_intrinsics(args: argparse.Namespace) -> int:
+    from calibration.boards import load_board
+    from calibration.camera import CalibrationError
+    from calibration.images import detect_images, find_camera_images
+    from calibration.intrinsics import calibrate_camera
+    from calibration.solve import Options
+    from common.files import atomic_write_json
+    from rig.commands._output import emit_json
+    from rig.commands._paths import output_file
+    from rig.errors import ConfigError
+
+    if not args.outlier_px > 0:
+        raise ConfigError(f"--outlier-px must be positive, got {args.outlier_px}")
+    board = load_board(args.board)
+    images = find_camera_images(args.images, args.camera)
+    if Path(args.output).is_file() and not args.force:
+        raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
+    output = output_file(args.output)
+    status = _status()
+    detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
+    status.done()
+    choice = {"auto": None, "hold": True, "fit": False}
+    opts = Options(outlier_px=args.outlier_px, fix_k3=choice[args.k3], fix_tangential=choice[args.tangential])
+    object_points = board.object_points()[1]
+    results, failed = {}, {}
+    for name in images.cameras:
+        status.update(f"calibrating {name}", force=True)
+        try:
+            results[name] = calibrate_camera(name, detections.image_size[name], detections.corners.get(name, {}), object_points, opts)
+        except CalibrationError as exc:
+            failed[name] = str(exc)
+    status.done()
+    cams = {}
+    for n, r in results.items():
+        cams[n] = r.to_dict()
+        # every image that gave no view says why, like every rejected view
+        cams[n]["not_found"] = [v for v in sorted(images.paths[n]) if v not in detections.corners.get(n, {})]
+    doc = {"format": "rig-intrinsics", "version": 1, "board": board.to_dict(), "images": str(Path(args.images).absolute()),
+           "cameras": cams,
+           "failed": failed}
+    if results:
+        try:
+            atomic_write_json(output, doc, make_parents=True)
+        except OSError as exc:
+            raise _write_failed(args.output, exc, "the intrinsics") from None
+    if args.json:
+        emit_json({"output": str(output) if results else None, **doc})
+    else:
+        for name, r in results.items():
+            d = r.to_dict()
+            spread = "not measured" if d["focal_spread_pct"] is None else f"{d['focal_spread_pct']:.2f} %"
+            print(f"{name}: fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} cy {d['cy']:.1f}  RMS {d['rms_px']:.3f} px  "
+                  f"views {d['views_used']}/{d['views_found']} of {detections.images_seen.get(name)} images  focal spread {spread}  "
+                  f"coverage {100 * d['coverage']:.0f} %  -> {r.verdict}")
+            for reason in r.reasons:
+                print(f"  {r.verdict}: {reason}")
+            for rej in r.rejected:
+                print(f"  rejected {rej.view}: {rej.reason}")
+            for view in cams[name]["not_found"]:
+                print(f"  rejected {view}: the board was not found in the image")
+        for name, why in failed.items():
+            print(f"{name}: unusable: {why}")
+        if results:
+            print(f"\nwrote {output}")
+    if not results:
+        raise CalibrationError("no camera could be calibrated: " + "; ".join(failed.values()))
+    return 0
 
 
 def cmd_report(args: argparse.Namespace) -> int:
