@@ -142,10 +142,34 @@ class CharucoSpec:
 BoardSpec = Union[ChessboardSpec, CharucoSpec]
 
 
+ANIPOSE_KEYS = {"board_x", "board_y", "square_length", "marker_length", "marker_bits", "dict_size"}
+
+
+def _from_anipose(d: dict[str, Any], where: str) -> dict[str, Any]:
+    """A ChArUco board file as (sleap-)anipose writes it: board_x/board_y squares, square_length and
+    marker_length in the user's unit (no unit is stored: values of 1 or more are taken as millimetres,
+    since no calibration square is a metre wide), marker_bits and dict_size naming the ArUco dictionary."""
+    unknown = set(d) - ANIPOSE_KEYS
+    if unknown:
+        raise CalibrationError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} in an anipose board file (keys: {', '.join(sorted(ANIPOSE_KEYS))})")
+    missing = ANIPOSE_KEYS - set(d)
+    if missing:
+        raise CalibrationError(f"{where}: missing key(s) {', '.join(sorted(missing))} of an anipose board file")
+    for key in ("square_length", "marker_length"):
+        if not isinstance(d[key], (int, float)) or isinstance(d[key], bool) or not d[key] > 0:
+            raise CalibrationError(f"{where}: '{key}' must be a positive number, got {d[key]!r}")
+    scale = 1e-3 if d["square_length"] >= 1.0 else 1.0
+    return {"type": "charuco", "squares_x": d["board_x"], "squares_y": d["board_y"],
+            "square_size": float(d["square_length"]) * scale, "marker_size": float(d["marker_length"]) * scale,
+            "dictionary": f"DICT_{d['marker_bits']}X{d['marker_bits']}_{d['dict_size']}"}
+
+
 def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
     """Validate a board description; every problem is one CalibrationError naming the key."""
     if not isinstance(d, dict):
         raise CalibrationError(f"{where}: expected a table")
+    if "type" not in d and ANIPOSE_KEYS & set(d):
+        d = _from_anipose(d, where)
     kind = d.get("type")
     if kind == "chessboard":
         allowed = {"type": None, "cols": int, "rows": int, "square_size": float, "margin": float}

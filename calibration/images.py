@@ -75,6 +75,7 @@ def find_images(root: str | Path) -> ImageSet:
         files = {f.stem: f for f in sorted(d.iterdir()) if _is_image(f)}
         if files:
             paths[d.name] = files
+    paths = _match_by_number(paths)
     if not paths:
         for f in sorted(root.iterdir()):
             if not _is_image(f):
@@ -87,6 +88,30 @@ def find_images(root: str | Path) -> ImageSet:
             f"{root}: no calibration images (expected {root}/CAMNAME/*.png|jpg, or leftNN/rightNN images in {root})"
         )
     return ImageSet(root, paths, _read_roles(root / "roles.json", paths))
+
+
+_TRAILING_NUMBER = re.compile(r"(\d+)$")
+
+
+def _match_by_number(paths: dict[str, dict[str, Path]]) -> dict[str, dict[str, Path]]:
+    """Views keyed by the number that ends each file name when no two cameras share a file name
+    (`back/back-02242022135219-0.jpg` and `mid/mid-02242022135221-0.jpg` are instant 0 of each
+    camera), provided that number is unique within every camera; otherwise unchanged."""
+    if len(paths) < 2:
+        return paths
+    stems = [set(per) for per in paths.values()]
+    if any(a & b for i, a in enumerate(stems) for b in stems[i + 1:]):
+        return paths
+    numbered: dict[str, dict[str, Path]] = {}
+    for cam, per in paths.items():
+        keyed = {}
+        for stem, path in per.items():
+            m = _TRAILING_NUMBER.search(stem)
+            if m is None or str(int(m.group(1))) in keyed:
+                return paths
+            keyed[str(int(m.group(1)))] = path
+        numbered[cam] = keyed
+    return numbered
 
 
 def find_camera_images(root: str | Path, cameras: list[str] | None = None) -> ImageSet:

@@ -24,7 +24,7 @@ def register(subparsers) -> None:
     b.set_defaults(func=cmd_board)
 
     r = sub.add_parser("run", help="calibrate from images on disk",
-                       description="Calibrate from images DIR/CAMNAME/*.png|jpg (same file stem = same instant) "
+                       description="Calibrate from images DIR/CAMNAME/*.png|jpg (same file stem = same instant; when no two cameras share a stem, the same number ending the name, as in CAM-TIME-N.jpg) "
                                    "or leftNN/rightNN pairs in one folder.")
     r.add_argument("--images", required=True, metavar="DIR", help="image folder")
     r.add_argument("--board", required=True, metavar="BOARD.toml", help="board description")

@@ -1,0 +1,60 @@
+"""Board files and image folders as other tools leave them."""
+from __future__ import annotations
+
+import pytest
+
+from calibration.boards import load_board
+from calibration.camera import CalibrationError
+from calibration.images import find_camera_images, find_images
+
+
+def test_an_anipose_board_file_is_read_in_millimetres(tmp_path):
+    path = tmp_path / "board.toml"
+    path.write_text("board_x = 8\nboard_y = 11\nsquare_length = 24.0\nmarker_length = 18.75\nmarker_bits = 4\ndict_size = 1000\n")
+    board = load_board(path)
+    assert (board.type, board.squares_x, board.squares_y, board.dictionary) == ("charuco", 8, 11, "DICT_4X4_1000")
+    assert board.square_size == pytest.approx(0.024) and board.marker_size == pytest.approx(0.01875)
+
+
+@pytest.mark.parametrize("text, words", [
+    ("board_x = 8\nboard_y = 11\nsquare_length = 24.0\nmarker_length = 18.75\nmarker_bits = 4\n", "missing key(s) dict_size"),
+    ("board_x = 8\nboard_y = 11\nsquare_length = -2\nmarker_length = 18.75\nmarker_bits = 4\ndict_size = 1000\n", "'square_length' must be a positive"),
+    ("board_x = 8\nboard_y = 11\nsquare_length = 24\nmarker_length = 18\nmarker_bits = 4\ndict_size = 77\n", "unknown 'dictionary' 'DICT_4X4_77'"),
+    ("board_x = 8\nboard_y = 11\nsquare_length = 24\nmarker_length = 18\nmarker_bits = 4\ndict_size = 50\ncolour = 1\n", "unknown key(s) colour"),
+])
+def test_a_bad_anipose_board_file_is_one_clear_error(tmp_path, text, words):
+    path = tmp_path / "board.toml"
+    path.write_text(text)
+    with pytest.raises(CalibrationError) as err:
+        load_board(path)
+    assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def _touch(folder, names):
+    folder.mkdir(parents=True, exist_ok=True)
+    for n in names:
+        (folder / n).write_bytes(b"")
+
+
+def test_cameras_naming_files_by_time_are_matched_by_the_number_that_ends_the_name(tmp_path):
+    _touch(tmp_path / "back", ["back-0224135219-0.jpg", "back-0224135220-1.jpg", "back-0224135221-10.jpg"])
+    _touch(tmp_path / "mid", ["mid-0224135221-0.jpg", "mid-0224135222-1.jpg", "mid-0224135223-10.jpg"])
+    images = find_images(tmp_path)
+    assert images.views == ["0", "1", "10"]
+    assert images.paths["mid"]["10"].name == "mid-0224135223-10.jpg"
+
+
+def test_shared_stems_stay_the_key_and_an_ambiguous_number_changes_nothing(tmp_path):
+    _touch(tmp_path / "a" / "x", ["0001.png", "0002.png"])
+    _touch(tmp_path / "a" / "y", ["0001.png", "0002.png"])
+    assert find_images(tmp_path / "a").views == ["0001", "0002"]
+    _touch(tmp_path / "b" / "x", ["x-1.png", "x-01.png"])  # two files end in 1
+    _touch(tmp_path / "b" / "y", ["y-1.png"])
+    assert find_images(tmp_path / "b").paths["x"].keys() == {"x-1", "x-01"}
+
+
+def test_one_cameras_intrinsics_photos_may_lie_directly_in_the_folder(tmp_path):
+    _touch(tmp_path / "cam07", ["a.jpg", "b.jpg"])
+    assert find_camera_images(tmp_path / "cam07").paths == {"cam07": {"a": tmp_path / "cam07" / "a.jpg", "b": tmp_path / "cam07" / "b.jpg"}}
+    with pytest.raises(CalibrationError, match="no images of camera 'cam09'"):
+        find_camera_images(tmp_path, ["cam09"])

@@ -1,0 +1,62 @@
+"""`rig calibrate run` on a real synchronised four-camera ChArUco recording
+(../shared/data/sleap-anipose-4cam-charuco: its own anipose board file, CAM/CAM-TIME-N.jpg names),
+against the two OpenCV multi-view calibrations its README gives."""
+from __future__ import annotations
+
+import re
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.camera import RigCalibration
+from tests.calibration.cli_helpers import run_json
+
+
+@pytest.fixture(scope="module")
+def sleap(shared_data):
+    return shared_data / "sleap-anipose-4cam-charuco"
+
+
+def references(folder) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """model -> camera -> (rvec back->camera, centre in back's frame, mm), from the README's table."""
+    out: dict[str, dict] = {}
+    model = None
+    for line in (folder / "README.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 6 or not re.fullmatch(r"[a-z]+", cells[2] or "-") or cells[2] == "camera":
+            continue
+        model = cells[0] or model
+        rvec = np.array(cells[4].split(), float)
+        centre = np.array(cells[5].split(), float)
+        out.setdefault(model, {})[cells[2]] = (rvec, centre)
+    return out
+
+
+@pytest.fixture(scope="module")
+def charuco_run(sleap, tmp_path_factory):
+    out = tmp_path_factory.mktemp("sleap") / "calib.json"
+    summary = run_json("calibrate", "run", "--images", sleap, "--board", sleap / "board.toml", "--left", "back", "-o", out)
+    return summary, RigCalibration.load(out)
+
+
+def test_every_set_is_used_and_fits_under_half_a_pixel(charuco_run):
+    summary, _ = charuco_run
+    assert summary["views_found"] == {"back": 21, "mid": 21, "side": 21, "top": 21}
+    assert all(v < 0.5 for v in summary["rms_px"].values()), summary["rms_px"]
+
+
+def test_poses_match_both_opencv_references(charuco_run, sleap):
+    _, rig = charuco_run
+    refs = references(sleap)
+    assert len(refs) == 2 and all(set(r) == {"back", "mid", "side", "top"} for r in refs.values()), refs
+    back = rig["back"]
+    for model, ref in refs.items():
+        for name in ("mid", "side", "top"):
+            cam = rig[name]
+            rel = cam.R @ back.R.T
+            centre = back.R @ (cam.center - back.center) * 1000.0
+            r_ref = cv2.Rodrigues(ref[name][0])[0]
+            angle = np.degrees(np.arccos(np.clip((np.trace(rel @ r_ref.T) - 1) / 2, -1, 1)))
+            ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
+            assert angle < 2.5 and abs(ratio - 1) < 0.05, (model, name, angle, ratio)
