@@ -178,6 +178,7 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "corners_rejected": result.corners_rejected.get(name, 0),
             "coverage": cov,
             "held": list(result.intrinsics[name].held),  # distortion terms held at 0
+            "intrinsics_given": result.intrinsics[name].given,  # held at values given beforehand (--intrinsics)
         }
         if views_used[name] < MIN_GOOD_VIEWS:
             warnings.append(f"camera '{name}': only {views_used[name]} views used; {MIN_GOOD_VIEWS} or more are needed to trust its intrinsics")
@@ -311,6 +312,9 @@ def format_report(calib: RigCalibration) -> str:
     for name, c in rep["cameras"].items():
         std = c.get("std") or {}
         lines.append(f"  {name:<10} " + "  ".join(f"{k} {_std(std.get(k))}" for k in ("fx", "fy", "cx", "cy")))
+    given = [name for name, c in rep["cameras"].items() if c.get("intrinsics_given")]
+    if given:
+        lines.append(f"intrinsics given and held (not fitted): {', '.join(given)}")
     held = {name: c.get("held") for name, c in rep["cameras"].items() if c.get("held")}
     if held:
         terms = sorted({t for h in held.values() for t in h}, key=["k3", "p1", "p2"].index)

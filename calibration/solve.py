@@ -10,7 +10,7 @@
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import cv2
@@ -46,6 +46,7 @@ class Options:
     fix_tangential: bool | None = None  # hold p1 p2 at 0; None: hold them for cameras with fewer than MIN_VIEWS_FOR_K3 views
     max_rounds: int = 5  # bundle adjustment + rejection rounds
     reweight: bool = True  # weight each camera view by its measured corner noise
+    known: dict = field(default_factory=dict)  # camera -> calibration.known.KnownIntrinsics, held fixed throughout
 
 
 def natural_key(s: str):
@@ -101,18 +102,26 @@ def calibrate_intrinsics(
         raise CalibrationError(
             f"camera '{camera}': the board was found in only {len(keep)} image(s); at least {MIN_VIEWS_PER_CAMERA} are needed"
         )
+    known = opts.known.get(camera)
     fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else len(keep) < MIN_VIEWS_FOR_K3
-    k3_held_for_views = fix_k3 and opts.fix_k3 is None
+    k3_held_for_views = fix_k3 and opts.fix_k3 is None and known is None
     # p1 p2 from a handful of views are as poorly observed as k3, and free to absorb a bad view
     fix_tangential = opts.fix_tangential if opts.fix_tangential is not None else len(keep) < MIN_VIEWS_FOR_K3
     flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if fix_tangential else 0)
+    K0 = dist0 = None
+    if known is not None:  # only the board poses are solved
+        known.check(size, f"camera '{camera}'")
+        K0, dist0 = known.K.copy(), known.dist.copy()
+        flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1
+                 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     for _ in range(max(opts.max_rounds, len(keep) // 2)):  # one view rejected per round
         names = list(keep)
         obj = [object_points[keep[v].ids].astype(np.float32) for v in names]
         img = [keep[v].points.astype(np.float32).reshape(-1, 1, 2) for v in names]
         try:
-            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags, criteria=crit)
+            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None if K0 is None else K0.copy(),
+                                                             None if dist0 is None else dist0.copy(), flags=flags, criteria=crit)
         except cv2.error as exc:
             raise CalibrationError(f"camera '{camera}': OpenCV could not calibrate it from these views ({exc.err})") from None
         view_rms = {}
@@ -132,6 +141,8 @@ def calibrate_intrinsics(
         )
         del keep[v]
     poses = {v: (cv2.Rodrigues(rv)[0], tv.reshape(3)) for v, rv, tv in zip(names, rvecs, tvecs)}
+    if known is not None:
+        return CameraIntrinsics(known.K.copy(), known.dist.copy(), float(rms), view_rms, poses, True, (), False, given=True)
     held = (("k3",) if fix_k3 else ()) + (("p1", "p2") if fix_tangential else ())
     return CameraIntrinsics(K, dist.reshape(-1)[:5], float(rms), view_rms, poses, fix_k3, held, k3_held_for_views)
 
@@ -261,6 +272,8 @@ def calibrate_rig(
     for ci, c in enumerate(order):
         for term in intr[c].held:
             fixed_intr[ci, bundle.INTRINSIC_NAMES.index(term)] = True
+        if intr[c].given:
+            fixed_intr[ci, :] = True
 
     active = np.ones(len(uv), dtype=bool)
     corners_rejected = np.zeros(len(order), dtype=int)

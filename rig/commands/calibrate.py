@@ -38,6 +38,11 @@ def register(subparsers) -> None:
     r.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto",
                    help="tangential terms p1 p2: hold them at 0 (lenses centred on the sensor), fit them, or auto: "
                         "fit them from 10 views per camera (default)")
+    r.add_argument("--intrinsics", metavar="FILE",
+                   help="hold these cameras' intrinsics fixed while the rig is solved: a `rig calibrate intrinsics` file, "
+                        "a calibration file, or an anipose calibration TOML")
+    r.add_argument("--hold", action="append", metavar="NAME",
+                   help="with --intrinsics: hold only this camera (repeatable; default: every camera the file has)")
     r.add_argument("--force", action="store_true", help="replace an existing calibration file")
     r.add_argument("--json", action="store_true", help="print one JSON object with the results")
     r.set_defaults(func=cmd_run)
@@ -139,6 +144,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--outlier-px must be positive, got {args.outlier_px}")
     board = load_board(args.board)
     images = find_images(args.images)
+    known = _known_intrinsics(args, images.cameras)
     # Where the result goes is checked before the detection and the solve, which take minutes.
     if Path(args.output).is_file() and not args.force:
         raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
@@ -147,7 +153,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
     status.done()
     opts = Options(left=args.left or images.roles.get("left"), right=args.right or images.roles.get("right"), outlier_px=args.outlier_px,
-                   fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential={"auto": None, "hold": True, "fit": False}[args.tangential])
+                   fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential={"auto": None, "hold": True, "fit": False}[args.tangential],
+                   known=known)
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
     rig = result.rig
@@ -206,6 +213,27 @@ def save_keeping(rig, output: Path) -> tuple[Path | None, str | None]:
         except OSError:
             continue
     return None, why
+
+
+def _known_intrinsics(args: argparse.Namespace, cameras: list[str]) -> dict:
+    """The intrinsics `--intrinsics` gives for the cameras to hold (`--hold`, default all it has)."""
+    from calibration.known import load_known
+    from rig.errors import ConfigError
+
+    if args.intrinsics is None:
+        if args.hold:
+            raise ConfigError("--hold needs --intrinsics FILE")
+        return {}
+    known = load_known(args.intrinsics)
+    names = args.hold or [c for c in cameras if c in known]
+    for name in names:
+        if name not in known:
+            raise ConfigError(f"--hold {name}: {args.intrinsics} has no camera '{name}' (it has: {', '.join(known)})")
+        if name not in cameras:
+            raise ConfigError(f"--hold {name}: no images of camera '{name}' (cameras: {', '.join(cameras)})")
+    if not names:
+        raise ConfigError(f"{args.intrinsics}: none of its cameras ({', '.join(known)}) has images here (cameras: {', '.join(cameras)})")
+    return {n: known[n] for n in names}
 
 
 def cmd_intrinsics(args: argparse.Namespace) -> int:

@@ -58,3 +58,25 @@ def test_one_cameras_intrinsics_photos_may_lie_directly_in_the_folder(tmp_path):
     assert find_camera_images(tmp_path / "cam07").paths == {"cam07": {"a": tmp_path / "cam07" / "a.jpg", "b": tmp_path / "cam07" / "b.jpg"}}
     with pytest.raises(CalibrationError, match="no images of camera 'cam09'"):
         find_camera_images(tmp_path, ["cam09"])
+
+
+def test_intrinsics_to_hold_are_checked_before_anything_runs(tmp_path):
+    from tests.rig.cli_helpers import assert_one_line_error, run_rig
+
+    def run_rig_error(*argv):
+        return assert_one_line_error(run_rig(*argv))
+
+    _touch(tmp_path / "imgs" / "back", ["a.png"])
+    _touch(tmp_path / "imgs" / "mid", ["a.png"])
+    board = tmp_path / "board.toml"
+    board.write_text('type = "chessboard"\ncols = 4\nrows = 7\nsquare_size = 0.06\n')
+    toml = tmp_path / "calib.toml"
+    toml.write_text('[cam_0]\nname = "back"\nsize = [640, 480]\nmatrix = [[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]\n'
+                    'distortions = [-0.1, 0, 0, 0, 0]\n')
+    base = ["calibrate", "run", "--images", tmp_path / "imgs", "--board", board, "-o", tmp_path / "out.json"]
+    assert "--hold needs --intrinsics" in run_rig_error(*base, "--hold", "back")
+    assert "has no camera 'mid'" in run_rig_error(*base, "--intrinsics", toml, "--hold", "mid")
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[cam_0]\nname = "back"\nsize = [640, 480]\nmatrix = [[-5.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]\ndistortions = [0]\n')
+    assert "positive focal lengths" in run_rig_error(*base, "--intrinsics", bad)
+    assert not (tmp_path / "out.json").exists()

@@ -60,3 +60,38 @@ def test_poses_match_both_opencv_references(charuco_run, sleap):
             angle = np.degrees(np.arccos(np.clip((np.trace(rel @ r_ref.T) - 1) / 2, -1, 1)))
             ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
             assert angle < 2.5 and abs(ratio - 1) < 0.05, (model, name, angle, ratio)
+
+
+def _anipose_poses(path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """name -> (R world->camera, centre in the world, mm) from an anipose calibration TOML."""
+    import tomllib
+
+    out = {}
+    for cam in tomllib.loads(path.read_text()).values():
+        if isinstance(cam, dict) and "name" in cam:
+            R = cv2.Rodrigues(np.array(cam["rotation"], float))[0]
+            out[cam["name"]] = (R, -R.T @ np.array(cam["translation"], float))
+    return out
+
+
+def test_with_the_reference_intrinsics_held_poses_match_it_within_a_degree(sleap, tmp_path):
+    """The anipose reference's `side` is a copy of `top` (README): its intrinsics are not held, and
+    its pose is not compared."""
+    ref_file = sleap / "reference-anipose-calibration.toml"
+    out = tmp_path / "held.json"
+    summary = run_json("calibrate", "run", "--images", sleap, "--board", sleap / "board.toml", "--left", "back", "-o", out,
+                       "--intrinsics", ref_file, "--hold", "back", "--hold", "mid", "--hold", "top")
+    rig = RigCalibration.load(out)
+    ref = _anipose_poses(ref_file)
+    for name in ("back", "mid", "top"):
+        assert summary["intrinsics"][name]["fx"] == pytest.approx(rig[name].fx) and rig.meta["report"]["cameras"][name]["intrinsics_given"]
+    assert not rig.meta["report"]["cameras"]["side"]["intrinsics_given"]
+    Rb, cb = ref["back"]
+    for name in ("mid", "top"):
+        R, c = ref[name]
+        rel_ref, centre_ref = R @ Rb.T, Rb @ (c - cb)
+        rel = rig[name].R @ rig["back"].R.T
+        centre = rig["back"].R @ (rig[name].center - rig["back"].center) * 1000.0
+        angle = np.degrees(np.arccos(np.clip((np.trace(rel @ rel_ref.T) - 1) / 2, -1, 1)))
+        ratio = np.linalg.norm(centre) / np.linalg.norm(centre_ref)
+        assert angle < 1.0 and abs(ratio - 1) < 0.015, (name, angle, ratio)
