@@ -28,6 +28,7 @@ class ChessboardSpec:
     rows: int
     square_size: float
     margin: float | None = None
+    inverted: bool = False  # white squares on black (the printed colours swapped)
 
     type = "chessboard"
 
@@ -69,12 +70,15 @@ class ChessboardSpec:
         sx, sy = self.squares
         inside = (ix[None, :] >= 0) & (ix[None, :] < sx) & (iy[:, None] >= 0) & (iy[:, None] < sy)
         black = ((ix[None, :] + iy[:, None]) % 2 == 0) & inside
-        return np.where(black, 0, 255).astype(np.uint8)
+        img = np.where(black, 0, 255).astype(np.uint8)
+        return 255 - img if self.inverted else img
 
     def to_dict(self) -> dict[str, Any]:
         d = {"type": "chessboard", "cols": self.cols, "rows": self.rows, "square_size": self.square_size}
         if self.margin is not None:
             d["margin"] = self.margin
+        if self.inverted:
+            d["inverted"] = True
         return d
 
 
@@ -88,6 +92,7 @@ class CharucoSpec:
     marker_size: float
     dictionary: str = "DICT_5X5_100"
     margin: float | None = None
+    inverted: bool = False  # white markers and squares on black (the printed colours swapped)
 
     type = "charuco"
 
@@ -123,7 +128,8 @@ class CharucoSpec:
         gw, gh = int(round(w_m * ppm)), int(round(h_m * ppm))
         grid = self.cv_board().generateImage((gw, gh), marginSize=0, borderBits=1)
         mp = int(round(m * ppm))
-        return cv2.copyMakeBorder(grid, mp, mp, mp, mp, cv2.BORDER_CONSTANT, value=255)
+        img = cv2.copyMakeBorder(grid, mp, mp, mp, mp, cv2.BORDER_CONSTANT, value=255)
+        return 255 - img if self.inverted else img
 
     def to_dict(self) -> dict[str, Any]:
         d = {
@@ -136,6 +142,8 @@ class CharucoSpec:
         }
         if self.margin is not None:
             d["margin"] = self.margin
+        if self.inverted:
+            d["inverted"] = True
         return d
 
 
@@ -172,7 +180,7 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
         d = _from_anipose(d, where)
     kind = d.get("type")
     if kind == "chessboard":
-        allowed = {"type": None, "cols": int, "rows": int, "square_size": float, "margin": float}
+        allowed = {"type": None, "cols": int, "rows": int, "square_size": float, "margin": float, "inverted": bool}
     elif kind == "charuco":
         allowed = {
             "type": None,
@@ -182,6 +190,7 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
             "marker_size": float,
             "dictionary": str,
             "margin": float,
+            "inverted": bool,
         }
     else:
         raise CalibrationError(f"{where}: 'type' must be \"chessboard\" or \"charuco\", not {kind!r}")
@@ -193,7 +202,7 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
         if typ is None:
             continue
         if key not in d:
-            if key in ("margin", "dictionary"):
+            if key in ("margin", "dictionary", "inverted"):
                 continue
             raise CalibrationError(f"{where}: missing key '{key}'")
         v = d[key]
@@ -203,6 +212,8 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
             raise CalibrationError(f"{where}: '{key}' must be a number, got {v!r}")
         if typ is str and not isinstance(v, str):
             raise CalibrationError(f"{where}: '{key}' must be a string, got {v!r}")
+        if typ is bool and not isinstance(v, bool):
+            raise CalibrationError(f"{where}: '{key}' must be true or false, got {v!r}")
         vals[key] = float(v) if typ is float else v
     if kind == "chessboard":
         if vals["cols"] < 2 or vals["rows"] < 2:

@@ -230,12 +230,53 @@ def _collinear(xy: np.ndarray) -> bool:
     return bool(s.size < 2 or s[1] < 1e-6 * max(s[0], 1e-12) or s[1] < 1e-9)
 
 
+class AnyFaceDetector:
+    """Finds the board whichever way it faces the camera: in the polarity the board file states
+    first, then in the other one (a white-on-black board, or a file that does not say so); a ChArUco
+    board also seen from the back (printed on film, or the camera behind it), where its markers read
+    mirrored. The corners found in a flipped image are mapped back to the image's own pixels; the
+    corner ids name the same physical corners either way."""
+
+    def __init__(self, board: BoardSpec, inner):
+        self.board = board
+        self.inner = inner
+        self.faces = [(inv, False) for inv in (board.inverted, not board.inverted)]
+        if isinstance(board, CharucoSpec):  # a chessboard is symmetric: its back cannot be told from its front
+            self.faces += [(inv, True) for inv in (board.inverted, not board.inverted)]
+        self.found_as: dict[tuple[bool, bool], int] = {}  # how often each face was the one found
+
+    def tried(self) -> str:
+        """What a search that found nothing tried, for the error message."""
+        b = self.board
+        what = (f"a ChArUco board of {b.squares_x}x{b.squares_y} squares with {b.dictionary} markers" if isinstance(b, CharucoSpec)
+                else f"a chessboard of {b.cols}x{b.rows} inner corners")
+        faces = "black on white and white on black" + (", front and back (mirrored)" if isinstance(b, CharucoSpec) else "")
+        return f"{what}, {faces}"
+
+    def __call__(self, image: np.ndarray) -> Corners | None:
+        gray = to_gray(image)
+        for inverted, mirrored in self.faces:
+            img = 255 - gray if inverted else gray
+            if mirrored:
+                img = img[:, ::-1]
+            found = self.inner(np.ascontiguousarray(img))
+            if found is None:
+                continue
+            self.found_as[(inverted, mirrored)] = self.found_as.get((inverted, mirrored), 0) + 1
+            if mirrored:
+                pts = found.points.copy()
+                pts[:, 0] = (gray.shape[1] - 1) - pts[:, 0]
+                found = Corners(found.ids, pts)
+            return found
+        return None
+
+
 def make_detector(board: BoardSpec):
     """A callable image -> Corners | None for the board (built once: the ArUco detector is not free)."""
     if isinstance(board, ChessboardSpec):
-        return ChessboardDetector(board)
+        return AnyFaceDetector(board, ChessboardDetector(board))
     if isinstance(board, CharucoSpec):
-        return CharucoDetector(board)
+        return AnyFaceDetector(board, CharucoDetector(board))
     raise TypeError(f"unknown board type {type(board).__name__}")
 
 

@@ -199,5 +199,7 @@ def detect_images(
             if progress:
                 progress(done, total)
     if not any(corners.values()):
-        raise CalibrationError(f"{images.root}: the board was not found in any of the {total} images (check the board file)")
+        tried = detector.tried() if hasattr(detector, "tried") else "the board file's board"
+        raise CalibrationError(f"{images.root}: the board was not found in any of the {total} images (tried {tried}); "
+                               f"check the board's size, squares and dictionary in the board file")
     return DetectionSet(sizes, corners, seen, sources)

@@ -196,7 +196,8 @@ def board_texture(board, texels_per_square: int) -> tuple[np.ndarray, int, float
     if grid.shape != (sy * texels_per_square, sx * texels_per_square):
         raise ValueError(f"board image has shape {grid.shape}, expected squares of {texels_per_square} texels")
     margin_tex = int(math.ceil(board.margin_m * ppm - 1e-9))
-    img = cv2.copyMakeBorder(grid, margin_tex, margin_tex, margin_tex, margin_tex, cv2.BORDER_CONSTANT, value=255)
+    paper = 0 if getattr(board, "inverted", False) else 255
+    img = cv2.copyMakeBorder(grid, margin_tex, margin_tex, margin_tex, margin_tex, cv2.BORDER_CONSTANT, value=paper)
     return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB), margin_tex, ppm
 
 

@@ -78,3 +78,45 @@ def test_rgb_and_grey_images_give_the_same_corners():
     rgb = np.repeat(image[:, :, None], 3, axis=2)
     a, b = detect(board, image), detect(board, rgb)
     assert np.array_equal(a.ids, b.ids) and np.allclose(a.points, b.points)
+
+
+def test_a_white_on_black_board_is_found_whatever_the_board_file_says():
+    from calibration.detect import make_detector
+
+    for board_cls, args in ((CharucoSpec, (7, 5, 0.08, 0.06, "DICT_5X5_100")), (ChessboardSpec, (8, 5, 0.06))):
+        printed = board_cls(*args, inverted=True)
+        image, H = warp_board(printed, QUAD)
+        for stated in (printed, board_cls(*args)):  # the file says so, or it does not
+            detector = make_detector(stated)
+            corners = detector(image)
+            assert corners is not None and len(corners) == stated.n_corners, (board_cls, stated)
+            assert _errors(stated, corners, H)[0] < 0.15
+            if board_cls is CharucoSpec:  # its markers read only in their own polarity (a chessboard's corners read in both)
+                assert list(detector.found_as) == [(True, False)]
+
+
+def test_a_charuco_board_seen_from_the_back_gives_its_corners_in_the_images_own_pixels():
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    image, H = warp_board(board, QUAD)
+    mirrored = np.ascontiguousarray(image[:, ::-1])
+    flip = np.array([[-1.0, 0, image.shape[1] - 1], [0, 1, 0], [0, 0, 1]])
+    corners = detect(board, mirrored)
+    assert corners is not None and len(corners) == board.n_corners
+    rms, worst = _errors(board, corners, flip @ H)
+    assert rms < 0.15 and worst < 0.3
+
+
+def test_no_board_anywhere_says_what_was_tried(tmp_path):
+    from calibration.camera import CalibrationError
+    from calibration.images import detect_images, find_images
+
+    (tmp_path / "left").mkdir()
+    cv2.imwrite(str(tmp_path / "left" / "0001.png"), np.full((240, 320), 128, np.uint8))
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    try:
+        detect_images(find_images(tmp_path), board)
+    except CalibrationError as exc:
+        msg = str(exc)
+    else:
+        raise AssertionError("no error")
+    assert "7x5 squares" in msg and "DICT_5X5_100" in msg and "white on black" in msg and "mirrored" in msg and "\n" not in msg

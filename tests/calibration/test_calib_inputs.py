@@ -80,3 +80,14 @@ def test_intrinsics_to_hold_are_checked_before_anything_runs(tmp_path):
     bad.write_text('[cam_0]\nname = "back"\nsize = [640, 480]\nmatrix = [[-5.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]\ndistortions = [0]\n')
     assert "positive focal lengths" in run_rig_error(*base, "--intrinsics", bad)
     assert not (tmp_path / "out.json").exists()
+
+
+def test_inverted_is_a_board_file_key(tmp_path):
+    path = tmp_path / "board.toml"
+    path.write_text('type = "charuco"\nsquares_x = 7\nsquares_y = 5\nsquare_size = 0.08\nmarker_size = 0.06\ninverted = true\n')
+    board = load_board(path)
+    assert board.inverted and board.to_dict()["inverted"] is True
+    assert board.image(200.0)[0, 0] == 0  # printed white on black, margin included
+    path.write_text('type = "chessboard"\ncols = 8\nrows = 5\nsquare_size = 0.06\ninverted = "yes"\n')
+    with pytest.raises(CalibrationError, match="'inverted' must be true or false"):
+        load_board(path)
