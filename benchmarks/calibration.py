@@ -3,6 +3,7 @@ rig from 50 views (intrinsics, stereo pair, joint bundle adjustment), with the a
 
     .venv/bin/python benchmarks/calibration.py [--views 50] [--json] [--synthetic]
     .venv/bin/python benchmarks/calibration.py --session [--cameras 6] [--size 640x360]
+    .venv/bin/python benchmarks/calibration.py --real [DIR] [--json]
 
 `--session`: the calibration `rig demo` makes. The simulated calibration session of an N-camera rig
 (simulator.calibration_session: the A0 board held at stations through the volume) is rendered at
@@ -15,19 +16,38 @@ those detections, and the result is compared with the simulator's ground truth. 
 `--synthetic` (or no simulator) times detection on the board seen through known homographies and the
 solve on exact corner projections with 0.1 px noise. Chessboard detection is always timed on the
 homography images too.
+
+`--real [DIR]`: the product's calibration on the three real datasets in DIR (default ../shared/data
+beside the checkout; when it is absent, one line says so and the exit status is 0), each run through
+the CLI (`rig calibrate ... --json`, in this process) into a temporary folder:
+  xi-stereo-chessboard        `rig calibrate run` on 25 left/right pairs (9x6 chessboard, 24 mm): fx error
+                              of each camera and baseline error against the README's plain-OpenCV figures
+  pose2sim-4cam-chessboard    `rig calibrate intrinsics` on 4 cameras x 7 photos (4x7 chessboard, 60 mm):
+                              fx error against the Qualisys file (focalLengthU / 64), focal spread, verdict
+  sleap-anipose-4cam-charuco  `rig calibrate run --board DIR/board.toml --left back`: rotation error (deg)
+                              and distance ratio of mid, side, top relative to back, against both OpenCV
+                              calibrations in the README's table
+For each: the images, the detection time per image (calibration.images.detect_images timed on its own,
+JPEG decoding included), the command's time and the solve's share of it (the command less its own call
+of detect_images), the RMS per camera. Every reference figure is read from the dataset's files.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
+import re
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 
 from calibration.boards import CharucoSpec, ChessboardSpec  # noqa: E402
 from calibration.compare import describe, errors_against_truth  # noqa: E402
@@ -38,6 +58,12 @@ from calibration.synthetic import arc_rig, board_poses, observe, warp_board  # n
 
 CHARUCO = CharucoSpec(11, 8, 0.105, 0.078, "DICT_5X5_100")  # A0 size
 CHESSBOARD = ChessboardSpec(9, 6, 0.06)
+
+REAL_DATA = REPO.parent / "shared" / "data"
+XI, POSE2SIM, SLEAP = "xi-stereo-chessboard", "pose2sim-4cam-chessboard", "sleap-anipose-4cam-charuco"
+# the boards as each dataset's README describes them (inner corners, square in metres)
+XI_BOARD = 'type = "chessboard"\ncols = 9\nrows = 6\nsquare_size = 0.024\n'
+POSE2SIM_BOARD = 'type = "chessboard"\ncols = 4\nrows = 7\nsquare_size = 0.06\n'
 
 
 def simulated_sequence(n_views: int):
@@ -133,6 +159,250 @@ def session_accuracy(n_cameras: int, width: int, height: int) -> dict:
     return out
 
 
+# --- --real: the product's calibration on the real datasets in ../shared/data ---------------------
+
+
+@contextlib.contextmanager
+def detection_timed(spent: list):
+    """Within: every call of calibration.images.detect_images (the commands look it up when they
+    run) adds its seconds to `spent`."""
+    import calibration.images as images
+
+    original = images.detect_images
+
+    def timed(*args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return original(*args, **kwargs)
+        finally:
+            spent.append(time.perf_counter() - t0)
+
+    images.detect_images = timed
+    try:
+        yield
+    finally:
+        images.detect_images = original
+
+
+def run_rig(*argv) -> tuple[dict, dict]:
+    """`rig ARGV --json` in this process: the JSON object it printed, and its time in seconds, all
+    of it and less its own board detection (the solve, with the report and the file written)."""
+    from rig.cli import main as rig_main
+
+    buf, detecting = io.StringIO(), []
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(buf), detection_timed(detecting):
+        rc = rig_main([*map(str, argv), "--json"])
+    seconds = time.perf_counter() - t0
+    if rc != 0:
+        raise RuntimeError(f"rig {' '.join(map(str, argv))} exited {rc}")
+    solve_s = round(seconds - sum(detecting), 2) if detecting else None  # None: the command's detection went unseen
+    return json.loads(buf.getvalue()), {"command_s": round(seconds, 2), "solve_s": solve_s}
+
+
+def time_image_detection(images, board) -> dict:
+    """detect_images on an image set, timed image by image (reading the file included)."""
+    from calibration.images import detect_images
+
+    stamps = [time.perf_counter()]
+    det = detect_images(images, board, progress=lambda i, n: stamps.append(time.perf_counter()))
+    per_image = [(b - a) * 1000 for a, b in zip(stamps, stamps[1:])]
+    return {"images": {c: len(p) for c, p in images.paths.items()},
+            "found": {c: len(v) for c, v in det.corners.items()},
+            "detect_ms_median": round(statistics.median(per_image), 1),
+            "detect_ms_mean": round(statistics.mean(per_image), 1),
+            "detect_ms_max": round(max(per_image), 1),
+            "detect_s": round(stamps[-1] - stamps[0], 2)}
+
+
+def pct(value: float, reference: float) -> float:
+    """Signed error of `value` in % of `reference`."""
+    return round(100 * (value / reference - 1), 3)
+
+
+def readme_number(readme: Path, pattern: str) -> float:
+    m = re.search(pattern, readme.read_text(), re.S)
+    if m is None:
+        raise ValueError(f"{readme}: no figure matching {pattern!r}")
+    return float(m.group(1))
+
+
+def xi_references(folder: Path) -> dict:
+    """The README's plain-OpenCV figures: fx (px) and baseline (m)."""
+    readme = folder / "README.md"
+    return {"fx": readme_number(readme, r"fx about\s+([\d.]+)\s*px"),
+            "baseline_m": readme_number(readme, r"baseline \|T\|.*?\(about\s+([\d.]+)\s*mm\)") / 1000}
+
+
+def qualisys_fx(folder: Path) -> dict[str, float]:
+    """focalLengthU per camera serial (1/64 px in the Qualisys file), in px."""
+    text = (folder / "reference-qualisys.qca.txt").read_text()
+    return {name: float(f) / 64.0 for name, f in re.findall(r'serial="(cam\d+)".*?focalLengthU="([\d.]+)"', text, re.S)}
+
+
+def opencv_references(folder: Path) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """The README's table: model -> camera -> (rvec back->camera, centre in back's frame, mm)."""
+    out: dict[str, dict] = {}
+    model = None
+    for line in (folder / "README.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 6 or not re.fullmatch(r"[a-z]+", cells[2]) or cells[2] == "camera":
+            continue
+        model = cells[0] or model
+        out.setdefault(model, {})[cells[2]] = (np.array(cells[4].split(), float), np.array(cells[5].split(), float))
+    return out
+
+
+def pose_errors(rig, name: str, rvec_ref: np.ndarray, centre_ref_mm: np.ndarray) -> dict:
+    """Camera `name` relative to back against a reference: rotation angle (deg), distance ratio."""
+    import cv2
+
+    back, cam = rig["back"], rig[name]
+    rel = cam.R @ back.R.T
+    centre_mm = back.R @ (cam.center - back.center) * 1000.0
+    cos = (np.trace(rel @ cv2.Rodrigues(rvec_ref)[0].T) - 1) / 2
+    return {"rotation_deg": round(float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), 3),
+            "distance_ratio": round(float(np.linalg.norm(centre_mm) / np.linalg.norm(centre_ref_mm)), 4)}
+
+
+def write_board(folder: Path, text: str) -> Path:
+    path = folder / "board.toml"
+    path.write_text(text)
+    return path
+
+
+def bench_xi(folder: Path, tmp: Path) -> dict:
+    from calibration.boards import load_board
+    from calibration.images import find_images
+
+    board = write_board(tmp, XI_BOARD)
+    out = time_image_detection(find_images(folder), load_board(board))
+    summary, times = run_rig("calibrate", "run", "--images", folder, "--board", board, "-o", tmp / "xi.json")
+    ref = xi_references(folder)
+    return {**out, **times, "reference": ref, "views_used": summary["views_used"],
+            "fx": {c: round(v["fx"], 2) for c, v in summary["intrinsics"].items()},
+            "fx_error_pct": {c: pct(v["fx"], ref["fx"]) for c, v in summary["intrinsics"].items()},
+            "rms_px": summary["rms_px"], "stereo_rms_px": summary["stereo_rms_px"], "epipolar_rms_px": summary["epipolar_rms_px"],
+            "baseline_m": round(summary["baseline_m"], 5), "baseline_error_pct": pct(summary["baseline_m"], ref["baseline_m"])}
+
+
+def bench_pose2sim(folder: Path, tmp: Path) -> dict:
+    from calibration.boards import load_board
+    from calibration.images import find_camera_images
+
+    board = write_board(tmp, POSE2SIM_BOARD)
+    out = time_image_detection(find_camera_images(folder), load_board(board))
+    summary, times = run_rig("calibrate", "intrinsics", "--images", folder, "--board", board, "-o", tmp / "intrinsics.json")
+    ref = qualisys_fx(folder)
+    cams = {}
+    for name, c in summary["cameras"].items():
+        cams[name] = {"fx": c["fx"], "fx_reference": round(ref[name], 2), "fx_error_pct": pct(c["fx"], ref[name]), "rms_px": c["rms_px"],
+                      "views_used": c["views_used"], "focal_spread_pct": c["focal_spread_pct"], "verdict": c["verdict"],
+                      "rejected": [r["view"] for r in c["rejected"]], "not_found": c["not_found"]}
+    return {**out, **times, "cameras": cams, "failed": summary["failed"]}
+
+
+def bench_sleap(folder: Path, tmp: Path) -> dict:
+    from calibration.boards import load_board
+    from calibration.camera import RigCalibration
+    from calibration.images import find_images
+
+    board = folder / "board.toml"
+    out = time_image_detection(find_images(folder), load_board(board))
+    summary, times = run_rig("calibrate", "run", "--images", folder, "--board", board, "--left", "back", "-o", tmp / "sleap.json")
+    rig = RigCalibration.load(tmp / "sleap.json")
+    poses = {model: {name: pose_errors(rig, name, *ref[name]) for name in ("mid", "side", "top")}
+             for model, ref in opencv_references(folder).items()}
+    return {**out, **times, "views_used": summary["views_used"], "rms_px": summary["rms_px"],
+            "warnings": summary["warnings"], "poses_vs_opencv": poses}
+
+
+REAL_BENCHES = {XI: bench_xi, POSE2SIM: bench_pose2sim, SLEAP: bench_sleap}
+
+
+def real_benchmarks(root: Path) -> dict:
+    """Every dataset present under `root`; an absent one says so, a failed one says why."""
+    results = {}
+    for name, bench in REAL_BENCHES.items():
+        folder = root / name
+        if not folder.is_dir():
+            results[name] = {"absent": str(folder)}
+            continue
+        with tempfile.TemporaryDirectory(prefix="rig-bench-") as tmp:
+            try:
+                results[name] = bench(folder, Path(tmp))
+            except Exception as exc:  # one dataset failing must not hide the others' figures
+                results[name] = {"error": f"{type(exc).__name__}: {exc}"}
+    return results
+
+
+def per_camera(d: dict, fmt: str = "{}") -> str:
+    return ", ".join(f"{c} {fmt.format(v)}" for c, v in d.items())
+
+
+def print_detection(r: dict) -> None:
+    print(f"  images: {per_camera(r['images'])} (board found: {per_camera(r['found'])})")
+    print(f"  detection per image (JPEG read included): {r['detect_ms_median']:.1f} ms median, {r['detect_ms_mean']:.1f} ms mean, "
+          f"{r['detect_ms_max']:.1f} ms max; {r['detect_s']:.2f} s in all")
+    solve = "not measured" if r["solve_s"] is None else f"{r['solve_s']:.2f} s"
+    print(f"  command: {r['command_s']:.2f} s, of which solve {solve} (the rest: its own board detection)")
+
+
+def print_xi(r: dict) -> None:
+    ref = r["reference"]
+    print(f"  {'camera':<8}{'fx px':>10}{'fx err %':>10}{'RMS px':>9}")
+    for c, fx in r["fx"].items():
+        print(f"  {c:<8}{fx:>10.2f}{r['fx_error_pct'][c]:>+10.2f}{r['rms_px'][c]:>9.3f}")
+    print(f"  reference (README, plain OpenCV): fx {ref['fx']} px, baseline {ref['baseline_m'] * 1000:.1f} mm")
+    print(f"  baseline {r['baseline_m'] * 1000:.2f} mm ({r['baseline_error_pct']:+.2f} %), stereo RMS {r['stereo_rms_px']:.3f} px, "
+          f"epipolar RMS {r['epipolar_rms_px']:.3f} px")
+
+
+def print_pose2sim(r: dict) -> None:
+    print(f"  {'camera':<8}{'fx px':>10}{'Qualisys':>10}{'fx err %':>10}{'RMS px':>9}{'views':>7}{'spread %':>10}  {'verdict':<9}dropped")
+    for c, d in r["cameras"].items():
+        spread = "-" if d["focal_spread_pct"] is None else f"{d['focal_spread_pct']:.2f}"
+        dropped = ", ".join([f"{v} (rejected)" for v in d["rejected"]] + [f"{v} (not found)" for v in d["not_found"]]) or "-"
+        print(f"  {c:<8}{d['fx']:>10.2f}{d['fx_reference']:>10.2f}{d['fx_error_pct']:>+10.2f}{d['rms_px']:>9.3f}{d['views_used']:>7}"
+              f"{spread:>10}  {d['verdict']:<9}{dropped}")
+    for c, why in r["failed"].items():
+        print(f"  {c}: failed: {why}")
+
+
+def print_sleap(r: dict) -> None:
+    print(f"  RMS px: {per_camera(r['rms_px'], '{:.3f}')}; views used: {per_camera(r['views_used'])}")
+    models = list(r["poses_vs_opencv"])
+    print(f"  {'camera':<8}" + "".join(f"{'vs OpenCV ' + m:>30}" for m in models))
+    print(f"  {'':<8}" + f"{'rotation deg':>17}{'dist ratio':>13}" * len(models))
+    for name in ("mid", "side", "top"):
+        cells = [r["poses_vs_opencv"][m][name] for m in models]
+        print(f"  {name:<8}" + "".join(f"{e['rotation_deg']:>17.2f}{e['distance_ratio']:>13.3f}" for e in cells))
+    for w in r["warnings"]:
+        print(f"  warning: {w}")
+
+
+REAL_PRINTERS = {XI: print_xi, POSE2SIM: print_pose2sim, SLEAP: print_sleap}
+
+
+def real_main(root: Path, as_json: bool) -> int:
+    if not root.is_dir():
+        message = f"the real calibration datasets are absent ({root}): nothing to benchmark"
+        print(json.dumps({"data": str(root), "absent": message}) if as_json else message)
+        return 0
+    results = real_benchmarks(root)
+    if as_json:
+        print(json.dumps({"data": str(root), **results}))
+        return 0
+    for name, r in results.items():
+        print(f"{name}:")
+        if "absent" in r or "error" in r:
+            print(f"  {'absent: ' + r['absent'] if 'absent' in r else 'error: ' + r['error']}")
+            continue
+        print_detection(r)
+        REAL_PRINTERS[name](r)
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=50, help="time steps (views) of the six-camera sequence")
@@ -141,7 +411,11 @@ def main() -> int:
     ap.add_argument("--session", action="store_true", help="the simulated calibration session `rig demo` uses (see above)")
     ap.add_argument("--cameras", type=int, default=6, help="with --session: cameras in the rig (default 6)")
     ap.add_argument("--size", default="640x360", help="with --session: image size (default 640x360, the demo's)")
+    ap.add_argument("--real", nargs="?", const=REAL_DATA, type=Path, metavar="DIR",
+                    help=f"benchmark `rig calibrate` on the real datasets in DIR (default {REAL_DATA})")
     args = ap.parse_args()
+    if args.real is not None:
+        return real_main(args.real, args.json)
     if args.session:
         w, h = (int(v) for v in args.size.lower().split("x"))
         res = session_accuracy(args.cameras, w, h)
