@@ -2,10 +2,8 @@
 
 `calibrate_camera` runs the single-camera fit (`calibration.solve.calibrate_intrinsics`: views that
 do not fit are rejected, one reason each), then measures how well the data pins the focal length
-down: the fit is repeated leaving out one view at a time (a jackknife), and the spread of the focal
-length over those fits is the uncertainty reported. A covariance from one fit assumes the model is
-right and the views independent; a resampling shows what one view more or less does to the answer,
-which is what goes wrong with a handful of views or a board in one part of the image.
+down: the spread of the focal length over fits that leave part of the views out
+(calibration.quality.focal_spread).
 
 Verdict per camera: "good", "weak" (usable, with the reason: focal spread over 1 %, coverage under
 a quarter of the image, few views) or "unusable" (too few views, or an RMS no lens model explains).
@@ -20,12 +18,9 @@ import numpy as np
 from calibration.camera import CalibrationError
 from calibration.detect import Corners
 from calibration.report import coverage
+from calibration.quality import COVERAGE_WEAK, RMS_UNUSABLE_PX, spread_reason, verdict
 from calibration.result import Rejection
-from calibration.solve import MIN_VIEWS_PER_CAMERA, Options, calibrate_intrinsics, natural_key
-
-SPREAD_WARN = 0.01  # a relative focal spread above this makes the camera "weak"
-COVERAGE_WEAK = 0.25  # board coverage of the image under this makes it "weak"
-RMS_UNUSABLE_PX = 2.0  # single-camera RMS above this: no lens model explains the corners
+from calibration.solve import MIN_VIEWS_PER_CAMERA, Options, calibrate_intrinsics, natural_key, resampled_spread
 
 
 @dataclass
@@ -65,22 +60,6 @@ class CameraResult:
         }
 
 
-def focal_spread(name: str, size: tuple[int, int], views: dict[str, Corners], object_points: np.ndarray, opts: Options) -> float | None:
-    """Relative jackknife standard deviation of fx over the fits that leave one view out."""
-    if len(views) <= MIN_VIEWS_PER_CAMERA:
-        return None
-    fx = []
-    for out in views:
-        rest = {v: c for v, c in views.items() if v != out}
-        # the views are already vetted: no further rejection inside the resampling
-        sub = Options(**{**opts.__dict__, "outlier_px": float("inf")})
-        fx.append(float(calibrate_intrinsics(name, size, rest, object_points, sub, []).K[0, 0]))
-    fx = np.asarray(fx)
-    n = len(fx)
-    std = float(np.sqrt((n - 1) / n * np.sum((fx - fx.mean()) ** 2)))
-    return std / float(np.mean(fx))
-
-
 def calibrate_camera(name: str, size: tuple[int, int], views: dict[str, Corners], object_points: np.ndarray,
                      opts: Options | None = None) -> CameraResult:
     opts = opts or Options()
@@ -91,22 +70,17 @@ def calibrate_camera(name: str, size: tuple[int, int], views: dict[str, Corners]
     fit = calibrate_intrinsics(name, size, views, object_points, opts, rejected)
     used = sorted(fit.view_rms, key=natural_key)
     kept = {v: views[v] for v in used}
-    spread = focal_spread(name, size, kept, object_points, opts)
+    spread = resampled_spread(name, size, kept, object_points, opts, fit.K, fit.dist)
     cov = coverage(size, [views[v].points for v in used])
     reasons: list[str] = []
-    verdict = "good"
     if fit.rms > RMS_UNUSABLE_PX:
-        verdict = "unusable"
         reasons.append(f"RMS {fit.rms:.2f} px: the corners fit no lens model (wrong board size, or a moving board?)")
     else:
-        if spread is None:
-            reasons.append(f"{len(used)} views: too few to measure how well the focal length is pinned down (use 10 or more)")
-        elif spread > SPREAD_WARN:
-            reasons.append(f"focal length moves {100 * spread:.1f} % between subsets of the views (limit {100 * SPREAD_WARN:g} %): "
-                           f"show the board tilted and in more parts of the image")
+        why = spread_reason(spread, len(used))
+        if why:
+            reasons.append(why)
         if cov["fraction"] < COVERAGE_WEAK:
             reasons.append(f"the board covered {100 * cov['fraction']:.0f} % of the image (under {100 * COVERAGE_WEAK:.0f} %): "
                            f"distortion at the edges is guessed")
-        if reasons:
-            verdict = "weak"
-    return CameraResult(name, size, fit.K, fit.dist, fit.rms, found, used, rejected, fit.held, spread, cov, verdict, reasons)
+    verdict_ = verdict(fit.rms, reasons)
+    return CameraResult(name, size, fit.K, fit.dist, fit.rms, found, used, rejected, fit.held, spread, cov, verdict_, reasons)

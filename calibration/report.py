@@ -17,6 +17,7 @@ import numpy as np
 
 from calibration.boards import BoardSpec
 from calibration.camera import CameraModel, RigCalibration
+from calibration.quality import SPREAD_WARN, spread_reason, verdict
 from calibration.result import CalibrationResult
 
 COVERAGE_GRID = (8, 6)  # cells across, down
@@ -179,7 +180,9 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "coverage": cov,
             "held": list(result.intrinsics[name].held),  # distortion terms held at 0
             "intrinsics_given": result.intrinsics[name].given,  # held at values given beforehand (--intrinsics)
+            "focal_spread_pct": None if result.intrinsics[name].focal_spread is None else round(100 * result.intrinsics[name].focal_spread, 3),
         }
+        first_warning = len(warnings)
         if views_used[name] < MIN_GOOD_VIEWS:
             warnings.append(f"camera '{name}': only {views_used[name]} views used; {MIN_GOOD_VIEWS} or more are needed to trust its intrinsics")
         if cov["fraction"] < MIN_COVERAGE:
@@ -204,6 +207,12 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
                 + ", ".join(f"{k} {per_camera[name][k]:.1f} +- {std_of[k]:.3g} px" for k in loose)
                 + "); show the board at more varied tilts and distances"
             )
+        spread = result.intrinsics[name].focal_spread
+        if spread is not None and spread > SPREAD_WARN:
+            warnings.append(f"camera '{name}': {spread_reason(spread, views_used[name])}")
+        reasons = [w.split(": ", 1)[1] for w in warnings[first_warning:]]
+        per_camera[name]["verdict"] = verdict(rms_px[name], reasons)
+        per_camera[name]["reasons"] = reasons
 
     shared_views = [v for v, cams in per_view.items() if len(cams) >= 2]
     report: dict[str, Any] = {
@@ -311,7 +320,13 @@ def format_report(calib: RigCalibration) -> str:
     lines.append("one-sigma uncertainty of the intrinsics (px; 'unknown' where the adjustment could not compute it):")
     for name, c in rep["cameras"].items():
         std = c.get("std") or {}
-        lines.append(f"  {name:<10} " + "  ".join(f"{k} {_std(std.get(k))}" for k in ("fx", "fy", "cx", "cy")))
+        spread = c.get("focal_spread_pct")
+        lines.append(f"  {name:<10} " + "  ".join(f"{k} {_std(std.get(k))}" for k in ("fx", "fy", "cx", "cy"))
+                     + ("" if spread is None else f"   fx spread over subsets of the views {spread:.2f} %"))
+    verdicts = {name: c.get("verdict") for name, c in rep["cameras"].items() if c.get("verdict")}
+    if verdicts:
+        lines.append("verdict: " + ", ".join(f"{n} {v}" for n, v in verdicts.items())
+                     + (" (why: the warnings below)" if any(v != "good" for v in verdicts.values()) else ""))
     given = [name for name, c in rep["cameras"].items() if c.get("intrinsics_given")]
     if given:
         lines.append(f"intrinsics given and held (not fitted): {', '.join(given)}")

@@ -40,6 +40,7 @@ class CameraIntrinsics:
     held: tuple[str, ...] = ()  # distortion terms held at 0 in every fit ("k3", "p1", "p2")
     k3_held_for_views: bool = False  # k3 held because the camera had too few views (not by choice)
     given: bool = False  # the intrinsics were given (calibration.known) and held: only board poses were fitted
+    focal_spread: float | None = None  # relative spread of fx over fits on subsets of the views (calibration.quality)
 
 
 @dataclass

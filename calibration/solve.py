@@ -28,6 +28,7 @@ from calibration.geometry import (
     rotation_vector,
 )
 from calibration.images import DetectionSet
+from calibration.quality import focal_spread
 from calibration.report import summary_meta
 from calibration.result import CalibrationResult, CameraIntrinsics, Observations, Rejection
 
@@ -147,6 +148,30 @@ def calibrate_intrinsics(
     return CameraIntrinsics(K, dist.reshape(-1)[:5], float(rms), view_rms, poses, fix_k3, held, k3_held_for_views)
 
 
+def resampled_spread(camera: str, size: tuple[int, int], views: dict[str, Corners], object_points: np.ndarray, opts: Options,
+                     K: np.ndarray, dist: np.ndarray) -> float | None:
+    """The focal length's relative spread over single-camera fits on subsets of these (vetted)
+    views (calibration.quality.focal_spread); each fit starts from the full fit's K and distortion."""
+    known = opts.known.get(camera)
+    if known is not None:
+        return None
+    fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else len(views) < MIN_VIEWS_FOR_K3
+    fix_tangential = opts.fix_tangential if opts.fix_tangential is not None else len(views) < MIN_VIEWS_FOR_K3
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if fix_tangential else 0)
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+
+    def fit_fx(subset: list[str]) -> float:
+        obj = [object_points[views[v].ids].astype(np.float32) for v in subset]
+        img = [views[v].points.astype(np.float32).reshape(-1, 1, 2) for v in subset]
+        _, K1, *_ = cv2.calibrateCamera(obj, img, size, K.copy(), dist.copy(), flags=flags, criteria=crit)
+        return float(K1[0, 0])
+
+    try:
+        return focal_spread(sorted(views, key=natural_key), fit_fx)
+    except cv2.error:
+        return None
+
+
 def _common(a: Corners, b: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ids, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
     return ids, a.points[ia], b.points[ib]
@@ -232,6 +257,8 @@ def calibrate_rig(
     for c in order:
         say(f"intrinsics of {c}")
         intr[c] = calibrate_intrinsics(c, detections.image_size[c], detections.corners[c], object_points, opts, rejected)
+        kept = {v: detections.corners[c][v] for v in intr[c].view_rms}
+        intr[c].focal_spread = resampled_spread(c, detections.image_size[c], kept, object_points, opts, intr[c].K, intr[c].dist)
 
     stereo = None
     if right is not None:
@@ -297,6 +324,7 @@ def calibrate_rig(
         n_obs = np.bincount(inv)
         good = ~off
         rms = np.sqrt(np.bincount(inv, weights=np.where(good, norm ** 2, 0.0)) / np.maximum(np.bincount(inv, weights=good.astype(float)), 1))
+        rms_all = np.sqrt(np.bincount(inv, weights=norm ** 2) / n_obs)  # what a rejection reports: every corner of the view
         off_frac = np.bincount(inv, weights=off.astype(float)) / n_obs
         limit = _threshold(list(rms), opts)
         bad_obs = (rms > limit) | (off_frac > 0.25)
@@ -312,15 +340,17 @@ def calibrate_rig(
             med_sigma = float(np.median(view_sigma))
             sigma = np.array([lookup.get(k, med_sigma) for k in all_key.tolist()]) / med_sigma
         med = float(np.median(rms))
-        for k, e, f, b in zip(uniq, rms, off_frac, bad_obs):
+        for k, e, e_all, f, b in zip(uniq, rms, rms_all, off_frac, bad_obs):
             if not b:
                 continue
             c, v = order[k // len(views)], views[k % len(views)]
-            if e > limit:
-                why = f"reprojection RMS {e:.2f} px in the joint rig fit, above the limit {limit:.2f} px (median {med:.2f} px)"
+            # one reason per view: most corners off (the board mis-detected or moved) before a poor fit
+            if f > 0.25:
+                why = (f"{f * 100:.0f}% of its corners are more than {corner_limit:.2f} px off in the joint rig fit "
+                       f"(RMS of all its corners {e_all:.2f} px)")
             else:
-                why = f"{f * 100:.0f}% of its corners are more than {corner_limit:.2f} px off in the joint rig fit"
-            rejected.append(Rejection(c, v, "joint", float(e), why))
+                why = f"reprojection RMS {e:.2f} px in the joint rig fit, above the limit {limit:.2f} px (median {med:.2f} px)"
+            rejected.append(Rejection(c, v, "joint", float(e_all if f > 0.25 else e), why))
         active_idx = np.flatnonzero(active)
         drop = bad_obs[inv] | off
         single = off & ~bad_obs[inv]

@@ -29,7 +29,8 @@ def register(subparsers) -> None:
     r.add_argument("--images", required=True, metavar="DIR", help="image folder")
     r.add_argument("--board", required=True, metavar="BOARD.toml", help="board description")
     r.add_argument("-o", "--output", required=True, metavar="calib.json", help="rig calibration file to write")
-    r.add_argument("--left", metavar="NAME", help="camera at the origin (default: 'left', else the first)")
+    r.add_argument("-c", "--config", metavar="RIG.toml", help="the rig's configuration: the stereo pair is its left and right cameras")
+    r.add_argument("--left", metavar="NAME", help="camera at the origin (default: the config's left camera, 'left', else the first)")
     r.add_argument("--right", metavar="NAME", help="other camera of the stereo pair (default: 'right', else the last)")
     r.add_argument("--outlier-px", type=float, default=1.0, help="reject views whose RMS exceeds max(this, 5 x median) (default 1.0)")
     r.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto",
@@ -138,6 +139,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from calibration.solve import Options, calibrate_rig
     from rig.commands._output import emit_json
     from rig.commands._paths import output_file
+    from rig.config import load_config
     from rig.errors import ConfigError, StorageError
 
     if not args.outlier_px > 0:
@@ -145,6 +147,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     images = find_images(args.images)
     known = _known_intrinsics(args, images.cameras)
+    roles = dict(images.roles)
+    if args.config:
+        cfg = load_config(args.config, check_calibration=False)
+        for role in ("left", "right"):
+            cam = cfg.by_role(role)
+            if cam is not None:
+                if cam.name not in images.cameras:
+                    raise ConfigError(f"{args.config}: its {role} camera '{cam.name}' has no images in {args.images} "
+                                      f"(cameras: {', '.join(images.cameras)})")
+                roles[role] = cam.name
     # Where the result goes is checked before the detection and the solve, which take minutes.
     if Path(args.output).is_file() and not args.force:
         raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
@@ -152,7 +164,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     status = _status()
     detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
     status.done()
-    opts = Options(left=args.left or images.roles.get("left"), right=args.right or images.roles.get("right"), outlier_px=args.outlier_px,
+    opts = Options(left=args.left or roles.get("left"), right=args.right or roles.get("right"), outlier_px=args.outlier_px,
                    fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential={"auto": None, "hold": True, "fit": False}[args.tangential],
                    known=known)
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
@@ -175,6 +187,13 @@ def cmd_run(args: argparse.Namespace) -> int:
             "epipolar_rms_px": (meta["report"]["stereo"] or {}).get("epipolar_rms_px"),
             "stereo_pair": meta["stereo_pair"],
             "intrinsics": {c.name: {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "dist": c.dist.tolist()} for c in rig.cameras},
+            # every camera in the rig frame (the left camera's): world-to-camera R, t (metres)
+            "per_camera": {c.name: {"K": c.K.tolist(), "dist": c.dist.tolist(), "R": c.R.tolist(), "t": c.t.tolist(),
+                                        "width": c.width, "height": c.height, "rms_px": meta["rms_px"].get(c.name),
+                                        "verdict": meta["report"]["cameras"][c.name].get("verdict"),
+                                        "reasons": meta["report"]["cameras"][c.name].get("reasons"),
+                                        "focal_spread_pct": meta["report"]["cameras"][c.name].get("focal_spread_pct")}
+                               for c in rig.cameras},
             "rejected": meta["rejected"],
             "warnings": meta["report"]["warnings"],
             **({"calibration": rig.to_dict()} if written is None else {}),

@@ -130,3 +130,28 @@ def test_unreadable_image_is_named(tmp_path, charuco_file, capsys):
     (d / "0001.png").write_bytes(b"not a png")
     rc, _, err = run(["calibrate", "run", "--images", str(tmp_path / "imgs"), "--board", str(charuco_file), "-o", str(tmp_path / "c.json")], capsys)
     assert rc == 2 and "0001.png" in err and "cannot read" in err
+
+
+def test_a_failure_with_json_is_also_one_json_object_on_stdout(tmp_path, charuco_file):
+    import json
+
+    for cam in ("left", "right"):
+        (tmp_path / "imgs" / cam).mkdir(parents=True)
+        cv2.imwrite(str(tmp_path / "imgs" / cam / "0000.png"), np.full((120, 160), 90, np.uint8))
+    proc = subprocess.run([sys.executable, "-m", "rig", "calibrate", "run", "--images", str(tmp_path / "imgs"), "--board", str(charuco_file),
+                           "-o", str(tmp_path / "c.json"), "--json"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+    answer = json.loads(proc.stdout)
+    assert answer["exit_code"] == 2 and "not found in any of the 2 images" in answer["error"]
+
+
+def test_the_rig_config_names_the_stereo_pair(tmp_path, charuco_file, capsys):
+    for cam in ("cam_a", "cam_b", "cam_c"):
+        (tmp_path / "imgs" / cam).mkdir(parents=True)
+        cv2.imwrite(str(tmp_path / "imgs" / cam / "0000.png"), np.zeros((8, 8), np.uint8))
+    config = tmp_path / "rig.toml"
+    config.write_text('[rig]\nname = "r"\n[[cameras]]\nname = "cam_x"\nuri = "sim://cam_x"\nrole = "left"\n'
+                      '[[cameras]]\nname = "cam_a"\nuri = "sim://cam_a"\nrole = "right"\n')
+    rc, _, err = run(["calibrate", "run", "--images", str(tmp_path / "imgs"), "--board", str(charuco_file), "-o", str(tmp_path / "c.json"),
+                      "-c", str(config)], capsys)
+    assert rc == 2 and "left camera 'cam_x' has no images" in err and err.count("\n") == 1

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from calibration.boards import CharucoSpec
@@ -80,6 +81,19 @@ def test_every_camera_used_most_views_and_fits_tightly(sim_calibration):
     rep = calib.meta["report"]
     assert rep["views_multi_camera"] >= 0.8 * TIME_STEPS
     assert set(rep["cameras"]) == set(calib.names)
+
+
+def test_the_json_answer_carries_every_camera_with_its_pose_and_verdict(sim_calibration):
+    summary, calib, _ = sim_calibration
+    per = summary["per_camera"]
+    assert list(per) == calib.names
+    for name, c in per.items():
+        cam = calib[name]
+        assert np.allclose(c["R"], cam.R) and np.allclose(c["t"], cam.t) and np.allclose(c["K"], cam.K) and np.allclose(c["dist"], cam.dist)
+        assert c["rms_px"] == summary["rms_px"][name]
+        assert c["verdict"] in ("good", "weak") and (c["verdict"] == "good") == (not c["reasons"]), c
+        assert c["focal_spread_pct"] is not None and c["focal_spread_pct"] < 1.0, c
+    assert summary["stereo_pair"] == {"left": "left", "right": "right"}
 
 
 def test_exports_of_the_six_camera_rig(sim_calibration, tmp_path, capsys):
