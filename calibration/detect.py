@@ -208,7 +208,7 @@ def refine_small_corners(gray: np.ndarray, pts: np.ndarray, factor: float = 0.10
 
     A ChArUco corner's clean neighbourhood ends where the marker's inner bits begin, about a quarter of
     a square away; a larger window lets the bits' edges pull the corner (often by a pixel or more when
-    squares are 10-20 px). The half-window is 15% of the distance to the nearest other corner
+    squares are 10-20 px). The half-window is `factor` (10 %) of the distance to the nearest other corner
     (2 to 11 px), which measured best on rendered boards with known corners.
     """
     if len(pts) < 2:

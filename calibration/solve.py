@@ -116,7 +116,8 @@ def calibrate_intrinsics(
         flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1
                  | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    for _ in range(max(opts.max_rounds, len(keep) // 2)):  # one view rejected per round
+    rounds = max(opts.max_rounds, len(keep) // 2)  # one view rejected per round; the last round only fits
+    for round_ in range(rounds + 1):
         names = list(keep)
         obj = [object_points[keep[v].ids].astype(np.float32) for v in names]
         img = [keep[v].points.astype(np.float32).reshape(-1, 1, 2) for v in names]
@@ -131,7 +132,7 @@ def calibrate_intrinsics(
             view_rms[v] = _view_rms(proj, i)
         limits = _view_limits(view_rms, opts)
         bad = sorted((v for v, e in view_rms.items() if e > limits[v]), key=lambda v: -view_rms[v] / limits[v])
-        if not bad or len(keep) - 1 < MIN_VIEWS_PER_CAMERA:
+        if not bad or len(keep) - 1 < MIN_VIEWS_PER_CAMERA or round_ == rounds:
             break
         v = bad[0]  # the worst view only: the refit without it may clear the others
         med = float(np.median([e for w, e in view_rms.items() if w != v]))

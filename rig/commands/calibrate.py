@@ -295,13 +295,14 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     doc = {"format": "rig-intrinsics", "version": 1, "board": board.to_dict(), "images": str(Path(args.images).absolute()),
            "cameras": cams,
            "failed": failed}
-    if results:
-        try:
-            atomic_write_json(output, doc, make_parents=True)
-        except OSError as exc:
-            raise _write_failed(args.output, exc, "the intrinsics") from None
+    if not results:  # one error (one JSON object with --json), nothing written
+        raise CalibrationError("no camera could be calibrated: " + "; ".join(failed.values()))
+    try:
+        atomic_write_json(output, doc, make_parents=True)
+    except OSError as exc:
+        raise _write_failed(args.output, exc, "the intrinsics") from None
     if args.json:
-        emit_json({"output": str(output) if results else None, **doc})
+        emit_json({"output": str(output), **doc})
     else:
         for name, r in results.items():
             d = r.to_dict()
@@ -317,10 +318,7 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
                 print(f"  rejected {view}: the board was not found in the image")
         for name, why in failed.items():
             print(f"{name}: unusable: {why}")
-        if results:
-            print(f"\nwrote {output}")
-    if not results:
-        raise CalibrationError("no camera could be calibrated: " + "; ".join(failed.values()))
+        print(f"\nwrote {output}")
     return 0
 
 

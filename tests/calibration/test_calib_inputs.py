@@ -91,3 +91,23 @@ def test_inverted_is_a_board_file_key(tmp_path):
     path.write_text('type = "chessboard"\ncols = 8\nrows = 5\nsquare_size = 0.06\ninverted = "yes"\n')
     with pytest.raises(CalibrationError, match="'inverted' must be true or false"):
         load_board(path)
+
+
+def test_intrinsics_of_no_camera_is_one_error_and_writes_nothing(tmp_path):
+    import json
+
+    import cv2
+
+    from calibration.boards import ChessboardSpec
+    from calibration.synthetic import warp_board
+    from tests.rig.cli_helpers import run_rig
+
+    board = ChessboardSpec(8, 5, 0.03)
+    (tmp_path / "cam").mkdir()
+    for i, quad in enumerate(([[100, 80], [500, 90], [520, 380], [90, 370]], [[150, 60], [560, 120], [540, 420], [120, 400]])):
+        cv2.imwrite(str(tmp_path / "cam" / f"{i}.png"), warp_board(board, quad, size=(640, 480), ppm=4000)[0])
+    (tmp_path / "board.toml").write_text('type = "chessboard"\ncols = 8\nrows = 5\nsquare_size = 0.03\n')
+    proc = run_rig("calibrate", "intrinsics", "--images", tmp_path / "cam", "--board", tmp_path / "board.toml", "-o", tmp_path / "i.json", "--json")
+    assert proc.returncode == 2 and len(proc.stdout.strip().splitlines()) == 1, proc.stdout
+    answer = json.loads(proc.stdout)
+    assert "found in only 2 image(s)" in answer["error"] and not (tmp_path / "i.json").exists()
