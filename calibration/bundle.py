@@ -189,13 +189,15 @@ def solve(
     max_iterations: int = 60,
     tolerance: float = 1e-10,
     weights: np.ndarray | None = None,
+    square_pixels: np.ndarray | None = None,
 ) -> Solution:
     """Minimise the squared reprojection error over all free parameters.
 
     `cams0` (C, 6) and `views0` (V, 6) are rotation vectors and translations. `fixed_intrinsics` (C, 9)
     bool marks intrinsic slots held at their start value (e.g. k3 when a camera has too few views to pin
     it down); the poses of `fixed_cameras` are held (the gauge). `weights` (M,) scales each corner's
-    squared error (1 / its noise variance); the returned residuals are unweighted.
+    squared error (1 / its noise variance); the returned residuals are unweighted. `square_pixels` (C,)
+    bool ties a camera's fy to its fx (one unknown; they must start equal).
     """
     C, V = problem.n_cameras, problem.n_views
     state = State.from_vectors(np.asarray(intr0).reshape(C, N_INTR), np.asarray(cams0).reshape(C, 6), np.asarray(views0).reshape(V, 6))
@@ -209,8 +211,17 @@ def solve(
     seen_views[problem.view_idx] = True
     for v in np.flatnonzero(~seen_views):  # a view with no corners has nothing to solve
         free[C * N_INTR + C * 6 + v * 6 : C * N_INTR + C * 6 + v * 6 + 6] = False
+    ties = []  # (fy slot, fx slot): fy moves with fx
+    if square_pixels is not None:
+        for c in np.flatnonzero(np.asarray(square_pixels, dtype=bool)):
+            fx, fy = c * N_INTR + INTRINSIC_NAMES.index("fx"), c * N_INTR + INTRINSIC_NAMES.index("fy")
+            if free[fx] and free[fy]:
+                free[fy] = False
+                ties.append((fy, fx))
     reduced = np.full(P, -1)
     reduced[free] = np.arange(int(free.sum()))
+    for dst, src in ties:  # its Jacobian columns add into the fx unknown's
+        reduced[dst] = reduced[src]
     Pr = int(free.sum())
 
     # Work on corners grouped by camera view, so the normal equations can be summed per view first.
@@ -245,6 +256,8 @@ def solve(
     def step(s: State, dx: np.ndarray) -> State:
         full = np.zeros(P)
         full[free] = dx
+        for dst, src in ties:
+            full[dst] = full[src]
         a = C * N_INTR
         b = a + C * 6
         return s.updated(full[:a].reshape(C, N_INTR), full[a:b].reshape(C, 6), full[b:].reshape(V, 6))
@@ -286,6 +299,8 @@ def solve(
     std_front, why = parameter_std(H, cost, 2 * len(r), n_front=int(free[:front].sum()))
     std = np.full(front, np.nan)
     std[free[:front]] = std_front
+    for dst, src in ties:
+        std[dst] = std[src]
     unweighted = np.empty_like(r)
     unweighted[order] = r / sw
     intr, cams, views = state.vectors()

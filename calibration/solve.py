@@ -48,6 +48,8 @@ class Options:
     max_rounds: int = 5  # bundle adjustment + rejection rounds
     reweight: bool = True  # weight each camera view by its measured corner noise
     known: dict = field(default_factory=dict)  # camera -> calibration.known.KnownIntrinsics, held fixed throughout
+    square_pixels: bool = False  # fy = fx (aspect ratio held at 1)
+    centred: bool = False  # principal point held at the image centre
 
 
 def natural_key(s: str):
@@ -109,7 +111,11 @@ def calibrate_intrinsics(
     # p1 p2 from a handful of views are as poorly observed as k3, and free to absorb a bad view
     fix_tangential = opts.fix_tangential if opts.fix_tangential is not None else len(keep) < MIN_VIEWS_FOR_K3
     flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if fix_tangential else 0)
-    K0 = dist0 = None
+    flags |= (cv2.CALIB_FIX_ASPECT_RATIO if opts.square_pixels else 0) | (cv2.CALIB_FIX_PRINCIPAL_POINT if opts.centred else 0)
+    # without an intrinsic guess OpenCV takes only the ratio fx/fy from K (1 here) and puts a held
+    # principal point at the image centre
+    K0 = np.eye(3) if (opts.square_pixels or opts.centred) else None
+    dist0 = None
     if known is not None:  # only the board poses are solved
         known.check(size, f"camera '{camera}'")
         K0, dist0 = known.K.copy(), known.dist.copy()
@@ -159,6 +165,7 @@ def resampled_spread(camera: str, size: tuple[int, int], views: dict[str, Corner
     fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else len(views) < MIN_VIEWS_FOR_K3
     fix_tangential = opts.fix_tangential if opts.fix_tangential is not None else len(views) < MIN_VIEWS_FOR_K3
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if fix_tangential else 0)
+    flags |= (cv2.CALIB_FIX_ASPECT_RATIO if opts.square_pixels else 0) | (cv2.CALIB_FIX_PRINCIPAL_POINT if opts.centred else 0)
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-10)
 
     def fit_fx(subset: list[str]) -> float:
@@ -302,6 +309,9 @@ def calibrate_rig(
             fixed_intr[ci, bundle.INTRINSIC_NAMES.index(term)] = True
         if intr[c].given:
             fixed_intr[ci, :] = True
+        elif opts.centred:
+            fixed_intr[ci, bundle.INTRINSIC_NAMES.index("cx")] = fixed_intr[ci, bundle.INTRINSIC_NAMES.index("cy")] = True
+    square = np.array([opts.square_pixels and not intr[c].given for c in order])
 
     active = np.ones(len(uv), dtype=bool)
     corners_rejected = np.zeros(len(order), dtype=int)
@@ -311,7 +321,8 @@ def calibrate_rig(
         say(f"bundle adjustment, round {round_ + 1}")
         problem = bundle.Problem(cam_idx[active], view_idx[active], object_points[ids[active]], uv[active], len(order), len(views))
         w = None if sigma is None else 1.0 / sigma[active] ** 2
-        sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr, weights=w)
+        sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr, weights=w,
+                           square_pixels=square)
         intr0, cams0, view_pose = sol.intrinsics, sol.cameras, sol.views
         if round_ == opts.max_rounds - 1:
             break

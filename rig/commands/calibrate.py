@@ -36,6 +36,9 @@ def register(subparsers) -> None:
     r.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto",
                    help="third radial term: hold it at 0 (ordinary lenses, under ~90 degrees across: it is poorly observable "
                         "and fitted values are noise), fit it (wide-angle lenses), or auto: fit it from 10 views per camera (default)")
+    r.add_argument("--fix-aspect", action="store_true", help="hold fy = fx (square pixels): for weak data from an ordinary camera")
+    r.add_argument("--fix-principal-point", action="store_true",
+                   help="hold the principal point at the image centre: for weak data (a board in few parts of the image)")
     r.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto",
                    help="tangential terms p1 p2: hold them at 0 (lenses centred on the sensor), fit them, or auto: "
                         "fit them from 10 views per camera (default)")
@@ -60,6 +63,9 @@ def register(subparsers) -> None:
     i.add_argument("--outlier-px", type=float, default=1.0,
                    help="reject views whose RMS exceeds max(this, 5 x the other views' median) (default 1.0)")
     i.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto", help="third radial term, as for `run` (default auto)")
+    i.add_argument("--fix-aspect", action="store_true", help="hold fy = fx (square pixels): for weak data from an ordinary camera")
+    i.add_argument("--fix-principal-point", action="store_true",
+                   help="hold the principal point at the image centre: for weak data (a board in few parts of the image)")
     i.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto", help="p1 p2, as for `run` (default auto)")
     i.add_argument("--force", action="store_true", help="replace an existing file")
     i.add_argument("--json", action="store_true", help="print one JSON object with the results")
@@ -166,7 +172,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     status.done()
     opts = Options(left=args.left or roles.get("left"), right=args.right or roles.get("right"), outlier_px=args.outlier_px,
                    fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential={"auto": None, "hold": True, "fit": False}[args.tangential],
-                   known=known)
+                   known=known, square_pixels=args.fix_aspect, centred=args.fix_principal_point)
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
     rig = result.rig
@@ -277,7 +283,8 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
     status.done()
     choice = {"auto": None, "hold": True, "fit": False}
-    opts = Options(outlier_px=args.outlier_px, fix_k3=choice[args.k3], fix_tangential=choice[args.tangential])
+    opts = Options(outlier_px=args.outlier_px, fix_k3=choice[args.k3], fix_tangential=choice[args.tangential],
+                   square_pixels=args.fix_aspect, centred=args.fix_principal_point)
     object_points = board.object_points()[1]
     results, failed = {}, {}
     for name in images.cameras:

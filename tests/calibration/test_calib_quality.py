@@ -36,3 +36,18 @@ def test_the_spread_is_the_jackknife_standard_deviation():
     expected = np.sqrt(5 / 6 * np.sum((d - d.mean()) ** 2)) / d.mean()
     assert abs(spread - expected) < 1e-12
     assert focal_spread(views[:4], lambda s: 1.0) is None  # too few views to resample
+
+
+def test_square_pixels_and_a_centred_principal_point_hold_through_the_joint_fit():
+    from calibration.synthetic import board_poses
+
+    truth = arc_rig(3)
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    det = observe(truth, board, board_poses(20), noise_px=0.2)
+    result = calibrate_rig(det, board, Options(square_pixels=True, centred=True))
+    for cam in result.rig.cameras:
+        assert cam.fx == cam.fy and abs(cam.fx / truth[cam.name].fx - 1) < 0.01, (cam.name, cam.fx, cam.fy, truth[cam.name].fx)
+        assert (cam.cx, cam.cy) == ((cam.width - 1) / 2, (cam.height - 1) / 2)
+        assert result.intrinsics[cam.name].K[0, 0] == result.intrinsics[cam.name].K[1, 1]
+    free = calibrate_rig(det, board, Options())
+    assert all(c.fx != c.fy for c in free.rig.cameras)
