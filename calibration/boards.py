@@ -7,6 +7,7 @@ pixels per metre covers board coordinates [i/ppm - margin, (i+1)/ppm - margin) i
 """
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,6 +94,9 @@ class CharucoSpec:
     dictionary: str = "DICT_5X5_100"
     margin: float | None = None
     inverted: bool = False  # white markers and squares on black (the printed colours swapped)
+    first_marker: int = 0  # this face's marker ids start here (0: OpenCV's default board)
+    back_first_marker: int | None = None  # a double-sided board: the back face's marker ids start here
+    thickness: float = 0.0  # a double-sided board: metres between its two printed faces
 
     type = "charuco"
 
@@ -115,11 +119,36 @@ class CharucoSpec:
     def cv_dictionary(self):
         return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
 
+    @property
+    def n_markers(self) -> int:
+        return (self.squares_x * self.squares_y) // 2
+
+    @property
+    def double_sided(self) -> bool:
+        return self.back_first_marker is not None
+
     def cv_board(self):
+        if self.first_marker:
+            ids = np.arange(self.first_marker, self.first_marker + self.n_markers, dtype=np.int32)
+            return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_size, self.marker_size, self.cv_dictionary(), ids)
         return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_size, self.marker_size, self.cv_dictionary())
 
+    def back_face(self) -> "CharucoSpec":
+        """The back face of a double-sided board as a board of its own (its own corner ids 0..N-1)."""
+        if not self.double_sided:
+            raise ValueError("not a double-sided board")
+        return dataclasses.replace(self, first_marker=self.back_first_marker, back_first_marker=None, thickness=0.0)
+
     def object_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Corner ids and their board-frame points. A double-sided board's back corners follow the
+        front's (ids N..2N-1): the back face is the same layout turned about the board's vertical axis,
+        so its own point (x, y) lies at (width - x, y, thickness) in the front face's frame."""
         pts = np.asarray(self.cv_board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+        if self.double_sided:
+            back = pts.copy()
+            back[:, 0] = self.size_m[0] - back[:, 0]
+            back[:, 2] = self.thickness
+            pts = np.concatenate([pts, back])
         return np.arange(len(pts)), pts
 
     def image(self, ppm: float) -> np.ndarray:
@@ -144,6 +173,10 @@ class CharucoSpec:
             d["margin"] = self.margin
         if self.inverted:
             d["inverted"] = True
+        if self.first_marker:
+            d["first_marker"] = self.first_marker
+        if self.double_sided:
+            d["back"] = {"first_marker": self.back_first_marker, "thickness": self.thickness}
         return d
 
 
@@ -191,6 +224,8 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
             "dictionary": str,
             "margin": float,
             "inverted": bool,
+            "first_marker": int,
+            "back": dict,
         }
     else:
         raise CalibrationError(f"{where}: 'type' must be \"chessboard\" or \"charuco\", not {kind!r}")
@@ -202,7 +237,7 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
         if typ is None:
             continue
         if key not in d:
-            if key in ("margin", "dictionary", "inverted"):
+            if key in ("margin", "dictionary", "inverted", "first_marker", "back"):
                 continue
             raise CalibrationError(f"{where}: missing key '{key}'")
         v = d[key]
@@ -214,6 +249,8 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
             raise CalibrationError(f"{where}: '{key}' must be a string, got {v!r}")
         if typ is bool and not isinstance(v, bool):
             raise CalibrationError(f"{where}: '{key}' must be true or false, got {v!r}")
+        if typ is dict and not isinstance(v, dict):
+            raise CalibrationError(f"{where}: '{key}' must be a table ([board.{key}] or {key} = {{...}}), got {v!r}")
         vals[key] = float(v) if typ is float else v
     if kind == "chessboard":
         if vals["cols"] < 2 or vals["rows"] < 2:
@@ -236,8 +273,28 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
         raise CalibrationError(f"{where}: unknown 'dictionary' {dic!r} (e.g. DICT_4X4_50, DICT_5X5_100, DICT_6X6_250)")
     n_markers = (vals["squares_x"] * vals["squares_y"]) // 2
     capacity = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dic)).bytesList.shape[0]
-    if n_markers > capacity:
-        raise CalibrationError(f"{where}: a {vals['squares_x']}x{vals['squares_y']} board needs {n_markers} markers but {dic} has {capacity}")
+    first = vals.get("first_marker", 0)
+    if first < 0:
+        raise CalibrationError(f"{where}: 'first_marker' must be 0 or more, got {first}")
+    if first + n_markers > capacity:
+        raise CalibrationError(f"{where}: a {vals['squares_x']}x{vals['squares_y']} board needs {n_markers} markers"
+                               f"{f' from id {first}' if first else ''} but {dic} has {capacity}")
+    back = vals.pop("back", None)
+    if back is not None:
+        unknown = set(back) - {"first_marker", "thickness"}
+        if unknown or "first_marker" not in back:
+            raise CalibrationError(f"{where}: 'back' takes first_marker (required) and thickness (metres)"
+                                   + (f"; unknown: {', '.join(sorted(unknown))}" if unknown else ""))
+        bfirst, thick = back["first_marker"], back.get("thickness", 0.0)
+        if not isinstance(bfirst, int) or isinstance(bfirst, bool) or bfirst < 0 or bfirst + n_markers > capacity:
+            raise CalibrationError(f"{where}: back.first_marker must be an id from 0 to {capacity - n_markers} ({dic} has {capacity} markers), got {bfirst!r}")
+        if bfirst < first + n_markers and first < bfirst + n_markers:
+            raise CalibrationError(f"{where}: the back face's markers {bfirst}..{bfirst + n_markers - 1} overlap the front's "
+                                   f"{first}..{first + n_markers - 1}: each face needs its own ids")
+        if not isinstance(thick, (int, float)) or isinstance(thick, bool) or not 0 <= thick < 0.1:
+            raise CalibrationError(f"{where}: back.thickness must be in metres, from 0 to 0.1, got {thick!r}")
+        vals["back_first_marker"] = bfirst
+        vals["thickness"] = float(thick)
     vals["dictionary"] = dic
     return CharucoSpec(**vals)
 

@@ -11,6 +11,8 @@ they are (any corners with ids, at least `min_corners`, not all on one line).
 """
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass
 
 import cv2
@@ -237,9 +239,11 @@ class AnyFaceDetector:
     mirrored. The corners found in a flipped image are mapped back to the image's own pixels; the
     corner ids name the same physical corners either way."""
 
-    def __init__(self, board: BoardSpec, inner):
+    def __init__(self, board: BoardSpec, inner, back=None):
         self.board = board
         self.inner = inner
+        # a double-sided board's back face: its own detector, its corner ids after the front's
+        self.sides = [(inner, 0)] + ([(back, board.n_corners)] if back is not None else [])
         self.faces = [(inv, False) for inv in (board.inverted, not board.inverted)]
         if isinstance(board, CharucoSpec):  # a chessboard is symmetric: its back cannot be told from its front
             self.faces += [(inv, True) for inv in (board.inverted, not board.inverted)]
@@ -251,6 +255,8 @@ class AnyFaceDetector:
         what = (f"a ChArUco board of {b.squares_x}x{b.squares_y} squares with {b.dictionary} markers" if isinstance(b, CharucoSpec)
                 else f"a chessboard of {b.cols}x{b.rows} inner corners")
         faces = "black on white and white on black" + (", front and back (mirrored)" if isinstance(b, CharucoSpec) else "")
+        if isinstance(b, CharucoSpec) and b.double_sided:
+            faces += f", and its back face's markers from id {b.back_first_marker}"
         return f"{what}, {faces}"
 
     def __call__(self, image: np.ndarray) -> Corners | None:
@@ -259,15 +265,17 @@ class AnyFaceDetector:
             img = 255 - gray if inverted else gray
             if mirrored:
                 img = img[:, ::-1]
-            found = self.inner(np.ascontiguousarray(img))
-            if found is None:
-                continue
-            self.found_as[(inverted, mirrored)] = self.found_as.get((inverted, mirrored), 0) + 1
-            if mirrored:
-                pts = found.points.copy()
-                pts[:, 0] = (gray.shape[1] - 1) - pts[:, 0]
-                found = Corners(found.ids, pts)
-            return found
+            img = np.ascontiguousarray(img)
+            for detector, first_id in self.sides:
+                found = detector(img)
+                if found is None:
+                    continue
+                self.found_as[(inverted, mirrored)] = self.found_as.get((inverted, mirrored), 0) + 1
+                pts = found.points
+                if mirrored:
+                    pts = pts.copy()
+                    pts[:, 0] = (gray.shape[1] - 1) - pts[:, 0]
+                return Corners(found.ids + first_id, pts)
         return None
 
 
@@ -276,7 +284,8 @@ def make_detector(board: BoardSpec):
     if isinstance(board, ChessboardSpec):
         return AnyFaceDetector(board, ChessboardDetector(board))
     if isinstance(board, CharucoSpec):
-        return AnyFaceDetector(board, CharucoDetector(board))
+        return AnyFaceDetector(board, CharucoDetector(dataclasses.replace(board, back_first_marker=None, thickness=0.0)),
+                               CharucoDetector(board.back_face()) if board.double_sided else None)
     raise TypeError(f"unknown board type {type(board).__name__}")
 
 

@@ -72,6 +72,30 @@ def camera_order(names: list[str], left: str | None, right: str | None) -> tuple
     return [left] + middle + ([right] if right else []), left, right
 
 
+def _planar(points: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """One view's board points as OpenCV's planar calibration wants them (z = 0), with the frame
+    they were moved into: (local points, R, c), local = R^T (p - c); (points, None, None) when they
+    already lie on z = 0. The back face of a double-sided board lies on z = thickness, mirrored."""
+    if not np.any(points[:, 2]):
+        return points, None, None
+    c = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - c)
+    R = vt.T.copy()
+    if np.linalg.det(R) < 0:
+        R[:, 2] *= -1
+    local = (points - c) @ R
+    local[:, 2] = 0.0
+    return local, R, c
+
+
+def _board_pose(R_local: np.ndarray, t_local: np.ndarray, R: np.ndarray | None, c: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """A board-to-camera pose found on `_planar`'s local points, in the board's own frame."""
+    if R is None:
+        return R_local, t_local
+    Rb = R_local @ R.T
+    return Rb, t_local - Rb @ c
+
+
 def _view_rms(uv_hat: np.ndarray, uv: np.ndarray) -> float:
     d = uv_hat.reshape(-1, 2) - uv.reshape(-1, 2)
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
@@ -125,7 +149,8 @@ def calibrate_intrinsics(
     rounds = max(opts.max_rounds, len(keep) // 2)  # one view rejected per round; the last round only fits
     for round_ in range(rounds + 1):
         names = list(keep)
-        obj = [object_points[keep[v].ids].astype(np.float32) for v in names]
+        planar = [_planar(object_points[keep[v].ids]) for v in names]
+        obj = [p[0].astype(np.float32) for p in planar]
         img = [keep[v].points.astype(np.float32).reshape(-1, 1, 2) for v in names]
         try:
             rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None if K0 is None else K0.copy(),
@@ -148,7 +173,7 @@ def calibrate_intrinsics(
                       f"(median of the other views {med:.2f} px)")
         )
         del keep[v]
-    poses = {v: (cv2.Rodrigues(rv)[0], tv.reshape(3)) for v, rv, tv in zip(names, rvecs, tvecs)}
+    poses = {v: _board_pose(cv2.Rodrigues(rv)[0], tv.reshape(3), p[1], p[2]) for v, rv, tv, p in zip(names, rvecs, tvecs, planar)}
     if known is not None:
         return CameraIntrinsics(known.K.copy(), known.dist.copy(), float(rms), view_rms, poses, True, (), False, given=True)
     held = (("k3",) if fix_k3 else ()) + (("p1", "p2") if fix_tangential else ())
@@ -169,7 +194,7 @@ def resampled_spread(camera: str, size: tuple[int, int], views: dict[str, Corner
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-10)
 
     def fit_fx(subset: list[str]) -> float:
-        obj = [object_points[views[v].ids].astype(np.float32) for v in subset]
+        obj = [_planar(object_points[views[v].ids])[0].astype(np.float32) for v in subset]
         img = [views[v].points.astype(np.float32).reshape(-1, 1, 2) for v in subset]
         _, K1, *_ = cv2.calibrateCamera(obj, img, size, K.copy(), dist.copy(), flags=flags, criteria=crit)
         return float(K1[0, 0])
