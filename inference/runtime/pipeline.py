@@ -115,8 +115,11 @@ def read_model_info(session: ort.InferenceSession, path: Path) -> ModelInfo:
     )
 
 
-def open_session(path: str | os.PathLike, providers: list[str] | None = None, threads: int | None = None, profile: str | None = None) -> ort.InferenceSession:
-    """An ONNX Runtime session; `profile` is a file prefix that turns ONNX Runtime's profiler on."""
+def open_session(path: str | os.PathLike, providers: list[str] | None = None, threads: int | None = None, profile: str | None = None,
+                 spinning: bool = True) -> ort.InferenceSession:
+    """An ONNX Runtime session; `profile` is a file prefix that turns ONNX Runtime's profiler on.
+    `spinning=False`: idle intra-op threads sleep instead of busy-waiting for the next parallel
+    section (for sessions that share the cores with other work)."""
     path = Path(path)
     if not path.is_file():
         raise InferenceError(f"{path}: no such model file")
@@ -124,6 +127,8 @@ def open_session(path: str | os.PathLike, providers: list[str] | None = None, th
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     if threads:
         opts.intra_op_num_threads = threads
+    if not spinning:
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     if profile:
         opts.enable_profiling = True
         opts.profile_file_prefix = str(profile)
