@@ -64,8 +64,9 @@ class SplitPipeline:
         self.stage1_path, self.view_path = paths["stage1"], paths["view"]
         # Two sessions take turns, beside capture, encoding and the server: threads that spin
         # after a run keep the other session's threads and the rest of the loop from the cores.
-        # Measured on the 2-core host (benchmarks/live_latency.py, 3 runs each): latency p50 minus
-        # the model 33-41 ms without spinning against 52-98 ms with it, throughput 95 % both ways.
+        # Measured on the 2-core host (benchmarks/live_latency.py): the loop's own share of the
+        # latency (p50 minus its stage 1 + view) 16-43 ms (median 26) in six runs without spinning,
+        # 28-62 ms (median 46) in nine with it; throughput the same within the host's drift.
         self.stage1_session = open_session(self.stage1_path, providers, threads, spinning=False)
         self.view_session = open_session(self.view_path, providers, threads, spinning=False)
         self.stage1_info = _part_info(self.stage1_session, self.stage1_path, "stage1")
