@@ -140,11 +140,10 @@ def _write_failed(path, exc: OSError, what: str):
 
 def cmd_run(args: argparse.Namespace) -> int:
     from calibration.boards import load_board
-    from calibration.images import detect_images, find_images
+    from calibration.images import find_images
     from calibration.report import format_report
-    from calibration.solve import Options, calibrate_rig
+    from calibration.solve import calibrate_rig
     from rig.commands._output import emit_json
-    from rig.commands._paths import output_file
     from rig.config import load_config
     from rig.errors import ConfigError, StorageError
 
@@ -164,15 +163,9 @@ def cmd_run(args: argparse.Namespace) -> int:
                                       f"(cameras: {', '.join(images.cameras)})")
                 roles[role] = cam.name
     # Where the result goes is checked before the detection and the solve, which take minutes.
-    if Path(args.output).is_file() and not args.force:
-        raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
-    output = output_file(args.output)
+    output, detections = _detect_for(args, images, board)
+    opts = _lens_options(args, left=args.left or roles.get("left"), right=args.right or roles.get("right"), known=known)
     status = _status()
-    detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
-    status.done()
-    opts = Options(left=args.left or roles.get("left"), right=args.right or roles.get("right"), outlier_px=args.outlier_px,
-                   fix_k3={"auto": None, "hold": True, "fit": False}[args.k3], fix_tangential={"auto": None, "hold": True, "fit": False}[args.tangential],
-                   known=known, square_pixels=args.fix_aspect, centred=args.fix_principal_point)
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
     rig = result.rig
@@ -240,6 +233,31 @@ def save_keeping(rig, output: Path) -> tuple[Path | None, str | None]:
     return None, why
 
 
+def _lens_options(args: argparse.Namespace, **more):
+    """The solver options the lens flags of `run` and `intrinsics` give."""
+    from calibration.solve import Options
+
+    choice = {"auto": None, "hold": True, "fit": False}
+    return Options(outlier_px=args.outlier_px, fix_k3=choice[args.k3], fix_tangential=choice[args.tangential],
+                   square_pixels=args.fix_aspect, centred=args.fix_principal_point, **more)
+
+
+def _detect_for(args: argparse.Namespace, images, board):
+    """Check the output file, then detect the board in every image (minutes: after every check of
+    the input). Returns (output path, detections)."""
+    from calibration.images import detect_images
+    from rig.commands._paths import output_file
+    from rig.errors import ConfigError
+
+    if Path(args.output).is_file() and not args.force:
+        raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
+    output = output_file(args.output)
+    status = _status()
+    detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
+    status.done()
+    return output, detections
+
+
 def _known_intrinsics(args: argparse.Namespace, cameras: list[str]) -> dict:
     """The intrinsics `--intrinsics` gives for the cameras to hold (`--hold`, default all it has)."""
     from calibration.known import load_known
@@ -264,27 +282,19 @@ def _known_intrinsics(args: argparse.Namespace, cameras: list[str]) -> dict:
 def cmd_intrinsics(args: argparse.Namespace) -> int:
     from calibration.boards import load_board
     from calibration.camera import CalibrationError
-    from calibration.images import detect_images, find_camera_images
+    from calibration.images import find_camera_images
     from calibration.intrinsics import calibrate_camera
-    from calibration.solve import Options
     from common.files import atomic_write_json
     from rig.commands._output import emit_json
-    from rig.commands._paths import output_file
     from rig.errors import ConfigError
 
     if not args.outlier_px > 0:
         raise ConfigError(f"--outlier-px must be positive, got {args.outlier_px}")
     board = load_board(args.board)
     images = find_camera_images(args.images, args.camera)
-    if Path(args.output).is_file() and not args.force:
-        raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
-    output = output_file(args.output)
+    output, detections = _detect_for(args, images, board)
+    opts = _lens_options(args)
     status = _status()
-    detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
-    status.done()
-    choice = {"auto": None, "hold": True, "fit": False}
-    opts = Options(outlier_px=args.outlier_px, fix_k3=choice[args.k3], fix_tangential=choice[args.tangential],
-                   square_pixels=args.fix_aspect, centred=args.fix_principal_point)
     object_points = board.object_points()[1]
     results, failed = {}, {}
     for name in images.cameras:
