@@ -1,8 +1,9 @@
 """Sparse bundle adjustment of a camera rig observing a planar board.
 
-Unknowns: intrinsics per camera (fx fy cx cy k1 k2 p1 p2 k3), the pose of every camera in the world
-(world-to-camera rotation and translation; the reference camera is held at the origin to fix the gauge)
-and the pose of the board in every view (board-to-world). The board's known geometry fixes the scale.
+Unknowns: intrinsics per camera (fx fy cx cy and the lens's distortion terms: k1 k2 p1 p2 k3 for a
+pinhole lens, k1 k2 k3 k4 for a fisheye one, whose ninth slot is unused and held), the pose of every
+camera in the world (world-to-camera rotation and translation; the reference camera is held at the
+origin to fix the gauge) and the pose of the board in every view (board-to-world). The board's known geometry fixes the scale.
 
 Each corner depends on one block of each kind (its camera's intrinsics, its camera's pose, its view's
 pose), so the Jacobian is block-sparse: we evaluate each corner's 2x21 block analytically, sum the
@@ -17,12 +18,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.geometry import project_rad_tan, rodrigues, rotation_vector
+from calibration.geometry import rodrigues, rotation_vector
+from calibration.lens import fisheye_terms, project_points
 from calibration.uncertainty import parameter_std
 
 N_INTR = 9
 N_LOCAL = N_INTR + 6 + 6
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+FISHEYE_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "")
+
+
+def intrinsic_names(model: str) -> tuple[str, ...]:
+    """The nine intrinsic slots' names for a lens model ("" marks an unused slot)."""
+    return FISHEYE_NAMES if model == "fisheye" else INTRINSIC_NAMES
 
 
 @dataclass
@@ -35,6 +43,10 @@ class Problem:
     uv: np.ndarray  # (M, 2) detected pixel position
     n_cameras: int
     n_views: int
+    fisheye: np.ndarray | None = None  # (C,) bool: the cameras with a fisheye lens
+
+    def point_fisheye(self) -> np.ndarray | None:
+        return None if self.fisheye is None or not np.any(self.fisheye) else np.asarray(self.fisheye, dtype=bool)[self.cam_idx]
 
 
 @dataclass
@@ -90,7 +102,7 @@ def _camera_points(problem: Problem, s: State):
 
 def residuals(problem: Problem, s: State) -> np.ndarray:
     _, _, Xc = _camera_points(problem, s)
-    return project_rad_tan(s.intr[problem.cam_idx], Xc) - problem.uv
+    return project_points(s.intr[problem.cam_idx], Xc, problem.point_fisheye()) - problem.uv
 
 
 def _skew_neg(a: np.ndarray) -> np.ndarray:
@@ -143,6 +155,18 @@ def jacobian(problem: Problem, s: State) -> np.ndarray:
     Pz[:, 1, 1] = 1 / z
     Pz[:, 0, 2] = -x / z
     Pz[:, 1, 2] = -y / z
+    fe = problem.point_fisheye()
+    if fe is not None:  # fisheye cameras' corners: their own distortion terms and derivatives
+        xd_f, yd_f, dk, dxy = fisheye_terms(x[fe], y[fe], s.intr[ci[fe], 4:8])
+        Jf = np.zeros((int(fe.sum()), 2, N_INTR))
+        Jf[:, 0, 0] = xd_f
+        Jf[:, 1, 1] = yd_f
+        Jf[:, 0, 2] = 1.0
+        Jf[:, 1, 3] = 1.0
+        Jf[:, 0, 4:8] = fx[fe, None] * dk[:, 0]
+        Jf[:, 1, 4:8] = fy[fe, None] * dk[:, 1]
+        J[fe, :, :N_INTR] = Jf
+        A[fe] = np.stack([fx[fe], fy[fe]], -1)[:, :, None] * dxy
     dUV_dXc = A @ Pz  # (M, 2, 3)
     J[:, :, 9:12] = dUV_dXc @ _skew_neg(Xr)
     J[:, :, 12:15] = dUV_dXc
@@ -190,6 +214,8 @@ def solve(
     tolerance: float = 1e-10,
     weights: np.ndarray | None = None,
     square_pixels: np.ndarray | None = None,
+    prior_std: np.ndarray | None = None,
+    prior_mean: np.ndarray | None = None,
 ) -> Solution:
     """Minimise the squared reprojection error over all free parameters.
 
@@ -197,14 +223,20 @@ def solve(
     bool marks intrinsic slots held at their start value (e.g. k3 when a camera has too few views to pin
     it down); the poses of `fixed_cameras` are held (the gauge). `weights` (M,) scales each corner's
     squared error (1 / its noise variance); the returned residuals are unweighted. `square_pixels` (C,)
-    bool ties a camera's fy to its fx (one unknown; they must start equal).
+    bool ties a camera's fy to its fx (one unknown; they must start equal). `prior_std` (C, 9) makes
+    intrinsic slots priors: a free slot with a finite value may move from `prior_mean` (default: its
+    start value) at a cost of ((value - mean) / prior_std)^2, in the units of the weighted squared
+    errors (a weight of 1 is a corner whose noise is 1 px). A fixed slot's prior is moot.
     """
     C, V = problem.n_cameras, problem.n_views
+    fisheye = np.zeros(C, dtype=bool) if problem.fisheye is None else np.asarray(problem.fisheye, dtype=bool)
     state = State.from_vectors(np.asarray(intr0).reshape(C, N_INTR), np.asarray(cams0).reshape(C, 6), np.asarray(views0).reshape(V, 6))
     P = C * N_INTR + C * 6 + V * 6
     free = np.ones(P, dtype=bool)
     if fixed_intrinsics is not None:
         free[: C * N_INTR] = ~np.asarray(fixed_intrinsics, dtype=bool).reshape(-1)
+    for c in np.flatnonzero(fisheye):  # the slot a fisheye lens does not use
+        free[c * N_INTR + FISHEYE_NAMES.index("")] = False
     for c in fixed_cameras:
         free[C * N_INTR + c * 6 : C * N_INTR + c * 6 + 6] = False
     seen_views = np.zeros(V, dtype=bool)
@@ -223,11 +255,21 @@ def solve(
     for dst, src in ties:  # its Jacobian columns add into the fx unknown's
         reduced[dst] = reduced[src]
     Pr = int(free.sum())
+    # Priors: (reduced column, start value, 1 / sigma) of each free slot that has one.
+    prior_cols = np.zeros(0, dtype=int)
+    prior_centre = prior_scale = np.zeros(0)
+    prior_slots = np.zeros(0, dtype=int)
+    if prior_std is not None:
+        ps = np.asarray(prior_std, dtype=np.float64).reshape(-1)
+        prior_slots = np.flatnonzero(np.isfinite(ps) & (ps > 0) & free[: C * N_INTR])
+        prior_cols = reduced[prior_slots]
+        prior_centre = np.asarray(intr0 if prior_mean is None else prior_mean, dtype=np.float64).reshape(-1)[prior_slots]
+        prior_scale = 1.0 / ps[prior_slots]
 
     # Work on corners grouped by camera view, so the normal equations can be summed per view first.
     key = problem.cam_idx.astype(np.int64) * V + problem.view_idx
     order = np.argsort(key, kind="stable")
-    prob = Problem(problem.cam_idx[order], problem.view_idx[order], problem.board_xyz[order], problem.uv[order], C, V)
+    prob = Problem(problem.cam_idx[order], problem.view_idx[order], problem.board_xyz[order], problem.uv[order], C, V, problem.fisheye)
     starts = np.flatnonzero(np.r_[True, np.diff(key[order]) != 0])
     ends = np.r_[starts[1:], len(order)]
     gidx = reduced[_global_index(prob)[starts]]
@@ -237,6 +279,13 @@ def solve(
 
     def weighted_residuals(s: State) -> np.ndarray:
         return residuals(prob, s) * sw
+
+    def prior_residuals(s: State) -> np.ndarray:
+        return (s.intr.reshape(-1)[prior_slots] - prior_centre) * prior_scale
+
+    def total_cost(r: np.ndarray, s: State) -> float:
+        e = prior_residuals(s)
+        return float(np.sum(r * r) + np.sum(e * e))
 
     def normal_equations(s: State, r: np.ndarray):
         J = jacobian(prob, s) * sw[:, :, None]
@@ -251,6 +300,9 @@ def solve(
         flat = (gidx[:, :, None] * n + gidx[:, None, :]).ravel()
         H = np.bincount(flat, weights=A.ravel(), minlength=n * n).reshape(n, n)[:Pr, :Pr]
         grad = np.bincount(gidx.ravel(), weights=g.ravel(), minlength=n)[:Pr]
+        if len(prior_slots):  # each prior is a residual linear in its slot
+            np.add.at(H, (prior_cols, prior_cols), prior_scale ** 2)
+            np.add.at(grad, prior_cols, prior_scale * prior_residuals(s))
         return H, grad
 
     def step(s: State, dx: np.ndarray) -> State:
@@ -263,7 +315,7 @@ def solve(
         return s.updated(full[:a].reshape(C, N_INTR), full[a:b].reshape(C, 6), full[b:].reshape(V, 6))
 
     r = weighted_residuals(state)
-    cost = float(np.sum(r * r))
+    cost = total_cost(r, state)
     lam = 1e-3
     converged = False
     it = 0
@@ -282,7 +334,7 @@ def solve(
                 continue
             candidate = step(state, dx)
             r_new = weighted_residuals(candidate)
-            cost_new = float(np.sum(r_new * r_new))
+            cost_new = total_cost(r_new, candidate)
             if np.isfinite(cost_new) and cost_new < cost:
                 rel = (cost - cost_new) / max(cost, 1e-300)
                 state, r, cost = candidate, r_new, cost_new
@@ -296,7 +348,7 @@ def solve(
 
     H, _ = normal_equations(state, r)  # at the solution, not at the last iterate before it
     front = C * N_INTR + C * 6  # intrinsics and camera poses; the board poses after them are marginalised
-    std_front, why = parameter_std(H, cost, 2 * len(r), n_front=int(free[:front].sum()))
+    std_front, why = parameter_std(H, cost, 2 * len(r) + len(prior_slots), n_front=int(free[:front].sum()))
     std = np.full(front, np.nan)
     std[free[:front]] = std_front
     for dst, src in ties:

@@ -1,10 +1,13 @@
-"""Camera model (pinhole + OpenCV distortion) and the rig calibration file.
+"""Camera model (OpenCV's pinhole or fisheye lens, calibration.lens) and the rig calibration file.
 
 Conventions (OpenCV): pixel centres at integer coordinates, x right, y down, z forward.
 `R`, `t` map world points into the camera: X_cam = R @ X_world + t. Units are metres.
 The file schema is shared by the calibrator's output and the simulator's ground truth:
 
-    {"version": 1, "cameras": [{"name", "width", "height", "K", "dist", "R", "t"}], ...}
+    {"version": 1, "cameras": [{"name", "width", "height", "K", "dist", "R", "t"[, "model"]}], ...}
+
+"model" is "pinhole" (dist = k1 k2 p1 p2 k3; the default, and absent from the file) or "fisheye"
+(dist = k1 k2 k3 k4).
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from calibration import lens
 from common.errors import ReportedError
 from common.files import atomic_write_json
 
@@ -31,7 +35,8 @@ class CalibrationError(ReportedError):
 
 @dataclass
 class CameraModel:
-    """One calibrated camera: intrinsics, OpenCV distortion (k1 k2 p1 p2 k3) and world-to-camera pose."""
+    """One calibrated camera: intrinsics, lens model and its distortion (pinhole: k1 k2 p1 p2 k3;
+    fisheye: k1 k2 k3 k4) and world-to-camera pose."""
 
     name: str
     width: int
@@ -40,6 +45,7 @@ class CameraModel:
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
     R: np.ndarray = field(default_factory=lambda: np.eye(3))
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    model: str = "pinhole"
 
     def __post_init__(self) -> None:
         self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
@@ -81,7 +87,8 @@ class CameraModel:
 
     @property
     def has_distortion(self) -> bool:
-        return bool(np.any(self.dist != 0))
+        """False only for a pinhole camera with every term 0 (a fisheye lens always bends rays)."""
+        return self.model == "fisheye" or bool(np.any(self.dist != 0))
 
     # -- geometry -------------------------------------------------------------------------------
     def world_to_camera(self, points: np.ndarray) -> np.ndarray:
@@ -89,17 +96,8 @@ class CameraModel:
         return pts @ self.R.T + self.t
 
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
-        """Apply the OpenCV distortion polynomial to normalised image coordinates (..., 2)."""
-        d = np.zeros(5)
-        d[: min(5, self.dist.size)] = self.dist[:5]
-        k1, k2, p1, p2, k3 = d
-        x = xy[..., 0]
-        y = xy[..., 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=-1)
+        """Apply the lens model's distortion to normalised image coordinates (..., 2)."""
+        return lens.distort(self.model, self.dist, xy)
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project world points (..., 3) to pixels (..., 2); also returns depth z (...)."""
@@ -114,18 +112,15 @@ class CameraModel:
         return uv, z
 
     def undistort_normalized(self, uv: np.ndarray, iterations: int = 20) -> np.ndarray:
-        """Pixels (..., 2) to undistorted normalised coordinates (..., 2) by fixed-point iteration."""
+        """Pixels (..., 2) to undistorted normalised coordinates (..., 2) (calibration.lens.undistort;
+        NaN where a fisheye lens sees beyond 90 degrees)."""
         uv = np.asarray(uv, dtype=np.float64)
         y = (uv[..., 1] - self.cy) / self.fy
         x = (uv[..., 0] - self.cx - self.K[0, 1] * y) / self.fx
         xd = np.stack([x, y], axis=-1)
         if not self.has_distortion:
             return xd
-        xu = xd.copy()
-        for _ in range(iterations):
-            err = self.distort_normalized(xu) - xd
-            xu = xu - err
-        return xu
+        return lens.undistort(self.model, self.dist, xd, iterations)
 
     def pixel_rays(self, uv: np.ndarray | None = None) -> np.ndarray:
         """Unit-z camera-frame directions (x, y, 1) for pixels uv (..., 2); all pixels when None."""
@@ -145,14 +140,14 @@ class CameraModel:
         K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
         K[1, 1] *= sy
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        return CameraModel(self.name, width, height, K, self.dist.copy(), self.R.copy(), self.t.copy())
+        return CameraModel(self.name, width, height, K, self.dist.copy(), self.R.copy(), self.t.copy(), self.model)
 
     def with_pose(self, R: np.ndarray, t: np.ndarray) -> "CameraModel":
-        return CameraModel(self.name, self.width, self.height, self.K.copy(), self.dist.copy(), R, t)
+        return CameraModel(self.name, self.width, self.height, self.K.copy(), self.dist.copy(), R, t, self.model)
 
     # -- serialisation --------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d = {
             "name": self.name,
             "width": self.width,
             "height": self.height,
@@ -161,19 +156,26 @@ class CameraModel:
             "R": self.R.tolist(),
             "t": self.t.tolist(),
         }
+        if self.model != "pinhole":
+            d["model"] = self.model
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "camera") -> "CameraModel":
         for key in ("name", "width", "height", "K"):
             if key not in d:
                 raise CalibrationError(f"{where}: missing key '{key}'")
+        model = d.get("model", "pinhole")
+        if model not in lens.MODELS:
+            raise CalibrationError(f"{where}: unknown lens model {model!r} (allowed: {', '.join(lens.MODELS)})")
         try:
             cam = cls(
+                model=model,
                 name=str(d["name"]),
                 width=int(d["width"]),
                 height=int(d["height"]),
                 K=np.asarray(d["K"], dtype=np.float64),
-                dist=np.asarray(d.get("dist", [0, 0, 0, 0, 0]), dtype=np.float64),
+                dist=np.asarray(d.get("dist", [0.0] * lens.N_DIST[model]), dtype=np.float64),
                 R=np.asarray(d.get("R", np.eye(3)), dtype=np.float64),
                 t=np.asarray(d.get("t", [0, 0, 0]), dtype=np.float64),
             )
@@ -183,6 +185,11 @@ class CameraModel:
             raise CalibrationError(f"{where}: width and height must be positive")
         if not np.all(np.isfinite(cam.K)) or cam.fx <= 0 or cam.fy <= 0:
             raise CalibrationError(f"{where}: K must be finite with positive focal lengths")
+        if cam.dist.size > lens.N_DIST[model] and np.any(cam.dist[lens.N_DIST[model]:] != 0):
+            raise CalibrationError(f"{where}: a {model} lens has {lens.N_DIST[model]} distortion terms "
+                                   f"({' '.join(lens.DIST_NAMES[model])}), got {cam.dist.size}")
+        if not np.all(np.isfinite(cam.dist)):
+            raise CalibrationError(f"{where}: distortion terms must be finite")
         if not np.allclose(cam.R @ cam.R.T, np.eye(3), atol=1e-6):
             raise CalibrationError(f"{where}: R is not a rotation matrix")
         return cam

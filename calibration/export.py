@@ -13,6 +13,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from calibration import lens
 from calibration.camera import CalibrationError, CameraModel, RigCalibration
 from common.files import atomic_path, atomic_write_bytes
 from calibration.geometry import rotation_vector
@@ -39,6 +40,8 @@ def _fs_write(path: Path, entries: list[tuple[str, object]]) -> None:
         for key, value in entries:
             if isinstance(value, (int, np.integer)):
                 fs.write(key, int(value))  # a plain integer node (EasyMocap reads H_ and W_ as such)
+            elif isinstance(value, str):
+                fs.write(key, value)
             elif isinstance(value, (list, tuple)) and value and isinstance(value[0], str):
                 fs.startWriteStruct(key, cv2.FileNode_SEQ)
                 for s in value:
@@ -53,19 +56,22 @@ def _fs_write(path: Path, entries: list[tuple[str, object]]) -> None:
 def rectification_maps(left: CameraModel, right: CameraModel, alpha: float | None = None) -> dict[str, np.ndarray]:
     """Per-pixel lookup maps (for cv2.remap) that rectify the pair, plus R1 R2 P1 P2 Q."""
     rect = rectification(left, right, alpha)
-    lx, ly = cv2.initUndistortRectifyMap(left.K, left.dist, rect["R1"], rect["P1"], (left.width, left.height), cv2.CV_32FC1)
-    rx, ry = cv2.initUndistortRectifyMap(right.K, right.dist, rect["R2"], rect["P2"], (left.width, left.height), cv2.CV_32FC1)
+    lx, ly = lens.undistort_rectify_map(left.model, left.K, left.dist, rect["R1"], rect["P1"], (left.width, left.height))
+    rx, ry = lens.undistort_rectify_map(right.model, right.K, right.dist, rect["R2"], rect["P2"], (left.width, left.height))
     return {"left_map_x": lx, "left_map_y": ly, "right_map_x": rx, "right_map_y": ry, **{k: rect[k] for k in ("R1", "R2", "P1", "P2", "Q")}}
 
 
 def export_opencv(rig: RigCalibration, out: Path, images=None) -> list[Path]:
-    """intrinsics.yml (M1 D1 M2 D2), extrinsics.yml (R T R1 R2 P1 P2 Q; right-from-left) and the
-    rectification maps of the stereo pair (rectification_maps.npz)."""
+    """intrinsics.yml (M1 D1 M2 D2, and lens1 lens2: "pinhole", whose D has k1 k2 p1 p2 k3 for
+    cv2.initUndistortRectifyMap, or "fisheye", whose D has k1..k4 for cv2.fisheye's), extrinsics.yml
+    (R T R1 R2 P1 P2 Q; right-from-left) and the rectification maps of the stereo pair
+    (rectification_maps.npz)."""
     left, right = stereo_pair(rig)
     rect = rectification(left, right)
     intr = out / "intrinsics.yml"
     extr = out / "extrinsics.yml"
-    _fs_write(intr, [("M1", left.K), ("D1", left.dist.reshape(1, -1)), ("M2", right.K), ("D2", right.dist.reshape(1, -1))])
+    _fs_write(intr, [("M1", left.K), ("D1", left.dist.reshape(1, -1)), ("M2", right.K), ("D2", right.dist.reshape(1, -1)),
+                     ("lens1", left.model), ("lens2", right.model)])
     _fs_write(extr, [("R", rect["R"]), ("T", rect["T"].reshape(3, 1)), ("R1", rect["R1"]), ("R2", rect["R2"]),
                      ("P1", rect["P1"]), ("P2", rect["P2"]), ("Q", rect["Q"])])
     maps = out / "rectification_maps.npz"
@@ -76,6 +82,10 @@ def export_opencv(rig: RigCalibration, out: Path, images=None) -> list[Path]:
 def export_easymocap(rig: RigCalibration, out: Path, images=None) -> list[Path]:
     """EasyMocap intri.yml (K_NAME, dist_NAME, and the image size H_NAME W_NAME, integers, as
     EasyMocap's read_camera reads them) and extri.yml (R_NAME Rodrigues, Rot_NAME, T_NAME)."""
+    fisheye = [c.name for c in rig.cameras if c.model == "fisheye"]
+    if fisheye:
+        raise CalibrationError(f"EasyMocap reads only OpenCV's pinhole lens model; camera(s) {', '.join(fisheye)} have a fisheye "
+                               f"lens (export to colmap, nerfstudio, anipose or opencv instead)")
     intr = out / "intri.yml"
     extr = out / "extri.yml"
     names = rig.names
@@ -97,7 +107,8 @@ def _toml_list(values) -> str:
 
 
 def export_anipose(rig: RigCalibration, out: Path, images=None) -> list[Path]:
-    """aniposelib CameraGroup TOML: [cam_N] name size matrix distortions rotation (Rodrigues) translation."""
+    """aniposelib CameraGroup TOML: [cam_N] name size matrix distortions rotation (Rodrigues) translation,
+    and `fisheye = true` with the four fisheye terms for a fisheye camera (aniposelib's FisheyeCamera)."""
     path = out / "calibration.toml"
     lines = []
     for i, c in enumerate(rig.cameras):
@@ -106,11 +117,10 @@ def export_anipose(rig: RigCalibration, out: Path, images=None) -> list[Path]:
             f'name = "{c.name}"',
             f"size = [{c.width}, {c.height}]",
             f"matrix = {_toml_list(c.K)}",
-            f"distortions = {_toml_list(_dist5(c))}",
+            f"distortions = {_toml_list(lens.coefficients(c.model, c.dist))}",
             f"rotation = {_toml_list(rotation_vector(c.R))}",
             f"translation = {_toml_list(c.t)}",
-            "",
-        ]
+        ] + (["fisheye = true"] if c.model == "fisheye" else []) + [""]
     rms = rig.meta.get("rms_px") or {}
     err = float(np.mean(list(rms.values()))) if rms else 0.0
     lines += ["[metadata]", "adjusted = true", f"error = {err!r}", ""]
@@ -183,20 +193,25 @@ def export_nerfstudio(rig: RigCalibration, out: Path, images: dict[str, np.ndarr
     path = out / "transforms.json"
     frames = []
     flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    models = {c.model for c in rig.cameras}
+    if len(models) > 1:
+        raise CalibrationError("nerfstudio takes one camera model per folder; this rig mixes pinhole and fisheye lenses")
+    camera_model = "OPENCV_FISHEYE" if models == {"fisheye"} else "OPENCV"
     for c in rig.cameras:
         c2w = np.eye(4)
         c2w[:3, :3] = c.R.T
         c2w[:3, 3] = c.center
-        d = _dist5(c)
+        d = lens.coefficients(c.model, c.dist)
+        terms = dict(zip(lens.DIST_NAMES[c.model], (float(x) for x in d)))
         frames.append({
             "file_path": f"images/{c.name}.png",
             "transform_matrix": (c2w @ flip).tolist(),
-            "camera_model": "OPENCV",
+            "camera_model": camera_model,
             "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx + 0.5, "cy": c.cy + 0.5, "w": c.width, "h": c.height,
-            "k1": d[0], "k2": d[1], "p1": d[2], "p2": d[3], "k3": d[4],
+            **terms,
         })
     written = write_images(out, rig, images)
-    atomic_write_bytes(path, (json.dumps({"camera_model": "OPENCV", "frames": frames}, indent=2) + "\n").encode())
+    atomic_write_bytes(path, (json.dumps({"camera_model": camera_model, "frames": frames}, indent=2) + "\n").encode())
     return [path, *written]
 
 
@@ -221,7 +236,8 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
 
 
 def export_colmap(rig: RigCalibration, out: Path, images: dict[str, np.ndarray] | None = None) -> list[Path]:
-    """COLMAP text model: cameras.txt (FULL_OPENCV), images.txt (world-to-camera quaternion, NAME.png),
+    """COLMAP text model: cameras.txt (FULL_OPENCV, or OPENCV_FISHEYE for a fisheye lens), images.txt
+    (world-to-camera quaternion, NAME.png),
     and an empty points3D.txt so COLMAP reads the folder as a model; with `images`, also the images
     it names (images/NAME.png, COLMAP's --image_path)."""
     if images is not None:
@@ -234,9 +250,12 @@ def export_colmap(rig: RigCalibration, out: Path, images: dict[str, np.ndarray] 
     ilines = ["# Image list with two lines of data per image:", "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
               "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(rig.cameras)}, mean observations per image: 0"]
     for i, c in enumerate(rig.cameras, start=1):
-        d = _dist5(c)
-        params = [c.fx, c.fy, c.cx + 0.5, c.cy + 0.5, d[0], d[1], d[2], d[3], d[4], 0.0, 0.0, 0.0]
-        clines.append(f"{i} FULL_OPENCV {c.width} {c.height} " + " ".join(repr(float(p)) for p in params))
+        if c.model == "fisheye":
+            model, params = "OPENCV_FISHEYE", [c.fx, c.fy, c.cx + 0.5, c.cy + 0.5, *lens.coefficients("fisheye", c.dist)]
+        else:
+            d = _dist5(c)
+            model, params = "FULL_OPENCV", [c.fx, c.fy, c.cx + 0.5, c.cy + 0.5, d[0], d[1], d[2], d[3], d[4], 0.0, 0.0, 0.0]
+        clines.append(f"{i} {model} {c.width} {c.height} " + " ".join(repr(float(p)) for p in params))
         q = _quaternion(c.R)
         ilines.append(f"{i} " + " ".join(repr(float(x)) for x in (*q, *c.t)) + f" {i} {c.name}.png")
         ilines.append("")

@@ -46,19 +46,6 @@ def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(s, c)))
 
 
-def project_rad_tan(intr: np.ndarray, Xc: np.ndarray) -> np.ndarray:
-    """Project camera-frame points (N, 3) with per-point intrinsics (N, 9): fx fy cx cy k1 k2 p1 p2 k3."""
-    z = Xc[:, 2]
-    x = Xc[:, 0] / z
-    y = Xc[:, 1] / z
-    fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr.T
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([fx * xd + cx, fy * yd + cy], axis=1)
-
-
 def average_rotation(Rs: np.ndarray) -> np.ndarray:
     """Chordal L2 mean of rotations (N, 3, 3): the rotation nearest their arithmetic mean."""
     M = np.asarray(Rs).sum(axis=0)

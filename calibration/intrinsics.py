@@ -38,6 +38,7 @@ class CameraResult:
     coverage: dict[str, Any]
     verdict: str
     reasons: list[str] = field(default_factory=list)
+    model: str = "pinhole"  # lens model (calibration.lens): "fisheye" has dist k1 k2 k3 k4
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -47,6 +48,7 @@ class CameraResult:
             "fy": round(float(self.K[1, 1]), 3),
             "cx": round(float(self.K[0, 2]), 3),
             "cy": round(float(self.K[1, 2]), 3),
+            "model": self.model,
             "dist": [round(float(x), 6) for x in self.dist],
             "held": list(self.held),
             "rms_px": round(self.rms_px, 4),
@@ -83,4 +85,4 @@ def calibrate_camera(name: str, size: tuple[int, int], views: dict[str, Corners]
             reasons.append(f"the board covered {100 * cov['fraction']:.0f} % of the image (under {100 * COVERAGE_WEAK:.0f} %): "
                            f"distortion at the edges is guessed")
     verdict_ = verdict(fit.rms, reasons)
-    return CameraResult(name, size, fit.K, fit.dist, fit.rms, found, used, rejected, fit.held, spread, cov, verdict_, reasons)
+    return CameraResult(name, size, fit.K, fit.dist, fit.rms, found, used, rejected, fit.held, spread, cov, verdict_, reasons, fit.model)

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from calibration.boards import BoardSpec
+from calibration.bundle import intrinsic_names
 from calibration.camera import CameraModel, RigCalibration
 from calibration.quality import SPREAD_WARN, spread_reason, verdict
 from calibration.result import CalibrationResult
@@ -81,8 +82,13 @@ def rectification(left: CameraModel, right: CameraModel, alpha: float | None = N
     flags = cv2.CALIB_ZERO_DISPARITY if parallel else 0
     if alpha is None:
         alpha = 0.0 if parallel else -1.0
+    # OpenCV's rectification reads the distortion only to find the valid pixels for alpha; it knows
+    # one lens model for both cameras. A fisheye camera enters it without distortion: the rotations
+    # are exact, and the crop is that of the undistorted image's central part.
+    dl = left.dist if left.model == "pinhole" else np.zeros(5)
+    dr = right.dist if right.model == "pinhole" else np.zeros(5)
     R1, R2, P1, P2, Q, roi1, roi2 = cv2.stereoRectify(
-        left.K, left.dist, right.K, right.dist, (left.width, left.height), R, T.reshape(3, 1), flags=flags, alpha=alpha
+        left.K, dl, right.K, dr, (left.width, left.height), R, T.reshape(3, 1), flags=flags, alpha=alpha
     )
     return {"R": R, "T": T, "R1": R1, "R2": R2, "P1": P1, "P2": P2, "Q": Q, "roi1": np.array(roi1), "roi2": np.array(roi2),
             "verge_deg": verge}
@@ -127,6 +133,22 @@ def _significant(x: float, digits: int = 3):
     return None if x is None or not np.isfinite(x) else float(f"{float(x):.{digits}g}")
 
 
+def _prior(fit, cam: CameraModel) -> dict[str, Any] | None:
+    """Given intrinsics used as priors: per term its sigma, its given value and how far the solve moved it."""
+    if not fit.prior:
+        return None
+    names = intrinsic_names(cam.model)
+    given = np.r_[fit.K[0, 0], fit.K[1, 1], fit.K[0, 2], fit.K[1, 2], np.asarray(fit.dist).reshape(-1)]
+    now = np.r_[cam.fx, cam.fy, cam.cx, cam.cy, cam.dist]
+    out = {}
+    for term, sigma in fit.prior.items():
+        i = names.index(term)
+        moved = float(now[i] - given[i])
+        out[term] = {"sigma": _significant(sigma), "given": _significant(given[i], 8), "moved": _significant(moved),
+                     "moved_sigma": round(moved / sigma, 3)}
+    return out
+
+
 def build_report(result: CalibrationResult) -> dict[str, Any]:
     obs = result.observations
     rig = result.rig
@@ -165,6 +187,7 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "fy": _r(cam.fy, 3),
             "cx": _r(cam.cx, 3),
             "cy": _r(cam.cy, 3),
+            "model": cam.model,
             "dist": [round(float(x), 6) for x in cam.dist],
             "std": {k: _significant(std[i]) for i, k in enumerate(("fx", "fy", "cx", "cy"))},
             "center_m": [round(float(x), 5) for x in cam.center],
@@ -180,6 +203,7 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "coverage": cov,
             "held": list(result.intrinsics[name].held),  # distortion terms held at 0
             "intrinsics_given": result.intrinsics[name].given,  # held at values given beforehand (--intrinsics)
+            "prior": _prior(result.intrinsics[name], cam),
             "focal_spread_pct": None if result.intrinsics[name].focal_spread is None else round(100 * result.intrinsics[name].focal_spread, 3),
         }
         first_warning = len(warnings)
@@ -327,12 +351,16 @@ def format_report(calib: RigCalibration) -> str:
     if verdicts:
         lines.append("verdict: " + ", ".join(f"{n} {v}" for n, v in verdicts.items())
                      + (" (why: the warnings below)" if any(v != "good" for v in verdicts.values()) else ""))
-    given = [name for name, c in rep["cameras"].items() if c.get("intrinsics_given")]
+    given = [name for name, c in rep["cameras"].items() if c.get("intrinsics_given") and not c.get("prior")]
     if given:
         lines.append(f"intrinsics given and held (not fitted): {', '.join(given)}")
+    for name, c in rep["cameras"].items():
+        if c.get("prior"):
+            moves = ", ".join(f"{t} {p['moved']:+.4g} ({p['moved_sigma']:+.2f} sigma)" for t, p in c["prior"].items())
+            lines.append(f"intrinsics given as priors, {name}: {moves}")
     held = {name: c.get("held") for name, c in rep["cameras"].items() if c.get("held")}
     if held:
-        terms = sorted({t for h in held.values() for t in h}, key=["k3", "p1", "p2"].index)
+        terms = sorted({t for h in held.values() for t in h}, key=["k3", "k4", "p1", "p2"].index)
         who = "every camera" if len(held) == len(rep["cameras"]) else ", ".join(held)
         lines.append(f"held at 0 (not fitted): {' '.join(terms)} ({who})")
     st = rep.get("stereo")

@@ -29,7 +29,7 @@ class Rejection:
 
 @dataclass
 class CameraIntrinsics:
-    """One camera's single-camera fit (`cv2.calibrateCamera`) over the views it kept."""
+    """One camera's single-camera fit (`cv2.calibrateCamera`, or the fisheye fit) over the views it kept."""
 
     K: np.ndarray
     dist: np.ndarray
@@ -41,6 +41,8 @@ class CameraIntrinsics:
     k3_held_for_views: bool = False  # k3 held because the camera had too few views (not by choice)
     given: bool = False  # the intrinsics were given (calibration.known) and held: only board poses were fitted
     focal_spread: float | None = None  # relative spread of fx over fits on subsets of the views (calibration.quality)
+    model: str = "pinhole"  # lens model (calibration.lens)
+    prior: dict[str, float] | None = None  # the given intrinsics were priors: term -> sigma (calibration.known.prior_sigmas)
 
 
 @dataclass

@@ -1,7 +1,9 @@
 """Calibrating a rig from board detections.
 
-1. intrinsics of every camera alone (`cv2.calibrateCamera`), views that do not fit rejected;
-2. the stereo pair's extrinsics (`cv2.stereoCalibrate`, intrinsics held);
+1. intrinsics of every camera alone (`cv2.calibrateCamera`; a fisheye lens: `cv2.fisheye.calibrate`
+   to start, then the bundle adjustment below on the one camera), views that do not fit rejected;
+2. the stereo pair's extrinsics (`cv2.stereoCalibrate`, intrinsics held; on undistorted coordinates
+   when a camera of the pair has a fisheye lens);
 3. every camera in the left camera's frame, started from the relative poses the board views imply and
    refined jointly with the intrinsics and every board pose by bundle adjustment over all views
    (a board seen by two or more cameras ties them together); observations that do not fit are rejected
@@ -16,7 +18,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from calibration import bundle
+from calibration import bundle, lens
 from calibration.boards import BoardSpec
 from calibration.camera import CalibrationError, CameraModel, RigCalibration
 from calibration.detect import Corners
@@ -28,6 +30,7 @@ from calibration.geometry import (
     rotation_vector,
 )
 from calibration.images import DetectionSet
+from calibration.known import prior_sigmas
 from calibration.quality import focal_spread
 from calibration.report import summary_meta
 from calibration.result import CalibrationResult, CameraIntrinsics, Observations, Rejection
@@ -50,6 +53,16 @@ class Options:
     known: dict = field(default_factory=dict)  # camera -> calibration.known.KnownIntrinsics, held fixed throughout
     square_pixels: bool = False  # fy = fx (aspect ratio held at 1)
     centred: bool = False  # principal point held at the image centre
+    fisheye: Any = ()  # cameras with a fisheye lens (names), or True for every camera
+    # the `known` intrinsics as priors instead of held: term -> (sigma, percent of f) (calibration.known.parse_prior)
+    prior: dict = field(default_factory=dict)
+
+    def model_of(self, camera: str) -> str:
+        """The lens model to fit for `camera`: given intrinsics carry their own."""
+        known = self.known.get(camera)
+        if known is not None:
+            return known.model
+        return "fisheye" if (self.fisheye is True or camera in (self.fisheye or ())) else "pinhole"
 
 
 def natural_key(s: str):
@@ -115,6 +128,154 @@ def _view_limits(view_rms: dict[str, float], opts: Options) -> dict[str, float]:
     return limits
 
 
+def _holds(camera: str, n_views: int, opts: Options) -> tuple[bool, bool, bool]:
+    """(fix_k3, fix_tangential, k3 held for too few views): the higher terms from a handful of views
+    are poorly observed and free to absorb a bad view. For a fisheye lens `fix_k3` holds k3 and k4."""
+    fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else n_views < MIN_VIEWS_FOR_K3
+    fix_tangential = opts.fix_tangential if opts.fix_tangential is not None else n_views < MIN_VIEWS_FOR_K3
+    return fix_k3, fix_tangential, fix_k3 and opts.fix_k3 is None and camera not in opts.known
+
+
+@dataclass
+class _Fit:
+    rms: float
+    K: np.ndarray
+    dist: np.ndarray
+    view_rms: dict[str, float]
+    poses: dict[str, tuple[np.ndarray, np.ndarray]]  # view -> board-to-camera, in the board's own frame
+    model: str = "pinhole"
+
+
+def _pinhole_fit(camera, size, views, names, object_points, opts, fix_k3, fix_tangential, known, guess=None) -> _Fit:
+    flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if fix_tangential else 0)
+    flags |= (cv2.CALIB_FIX_ASPECT_RATIO if opts.square_pixels else 0) | (cv2.CALIB_FIX_PRINCIPAL_POINT if opts.centred else 0)
+    # without an intrinsic guess OpenCV takes only the ratio fx/fy from K (1 here) and puts a held
+    # principal point at the image centre
+    K0 = np.eye(3) if (opts.square_pixels or opts.centred) else None
+    dist0 = None
+    if guess is not None:
+        K0, dist0 = guess[0].copy(), guess[1].copy()
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+    if known is not None:  # only the board poses are solved
+        K0, dist0 = known.K.copy(), known.dist.copy()
+        flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1
+                 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST)
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100 if guess is None else 50, 1e-12 if guess is None else 1e-10)
+    planar = [_planar(object_points[views[v].ids]) for v in names]
+    obj = [p[0].astype(np.float32) for p in planar]
+    img = [views[v].points.astype(np.float32).reshape(-1, 1, 2) for v in names]
+    try:
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, K0, dist0, flags=flags, criteria=crit)
+    except cv2.error as exc:
+        raise CalibrationError(f"camera '{camera}': OpenCV could not calibrate it from these views ({exc.err})") from None
+    view_rms, poses = {}, {}
+    for v, o, i, rv, tv, p in zip(names, obj, img, rvecs, tvecs, planar):
+        proj, _ = cv2.projectPoints(o, rv, tv, K, dist)
+        view_rms[v] = _view_rms(proj, i)
+        poses[v] = _board_pose(cv2.Rodrigues(rv)[0], tv.reshape(3), p[1], p[2])
+    return _Fit(float(rms), K, dist.reshape(-1)[:5], view_rms, poses)
+
+
+def _poses_through(camera: str, K: np.ndarray, D: np.ndarray, obj: list[np.ndarray], img: list[np.ndarray]):
+    """Each view's board pose through a fisheye lens: its corners undistorted, then `cv2.solvePnP`."""
+    rvecs, tvecs = [], []
+    for o, i in zip(obj, img):
+        xy = lens.undistort_fisheye((i.reshape(-1, 2) - K[:2, 2]) / [K[0, 0], K[1, 1]], D)
+        ok = np.all(np.isfinite(xy), axis=1)
+        if ok.sum() < 4:
+            raise CalibrationError(f"camera '{camera}': its corners lie outside what these fisheye intrinsics can see")
+        _, rv, tv = cv2.solvePnP(o.reshape(-1, 3)[ok], xy[ok].reshape(-1, 1, 2), np.eye(3), None)
+        rvecs.append(rv)
+        tvecs.append(tv)
+    return rvecs, tvecs
+
+
+def _equidistant_start(camera: str, size: tuple[int, int], obj: list[np.ndarray], img: list[np.ndarray]):
+    """A fisheye start without OpenCV's: the equidistant lens (every k 0, principal point at the image
+    centre) whose focal length makes the views' corners fit best, among 24 from 60 to 240 degrees
+    across the image's diagonal."""
+    w, h = size
+    half_diagonal = 0.5 * float(np.hypot(w, h))
+    best = None
+    for fov in np.linspace(60.0, 240.0, 24):
+        f = half_diagonal / np.radians(fov / 2)
+        K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+        try:
+            rvecs, tvecs = _poses_through(camera, K, np.zeros(4), obj, img)
+        except (CalibrationError, cv2.error):
+            continue
+        err = sum(float(np.sum((lens.project_points(np.tile([f, f, K[0, 2], K[1, 2], 0, 0, 0, 0, 0], (o.shape[1], 1)),
+                                                    o.reshape(-1, 3) @ cv2.Rodrigues(rv)[0].T + tv.reshape(3), np.ones(o.shape[1], bool))
+                                 - i.reshape(-1, 2)) ** 2)) for o, i, rv, tv in zip(obj, img, rvecs, tvecs))
+        if np.isfinite(err) and (best is None or err < best[0]):
+            best = (err, K, rvecs, tvecs)
+    if best is None:
+        raise CalibrationError(f"camera '{camera}': no fisheye lens fits these views (is the board size right?)")
+    return best[1], np.zeros(4), best[2], best[3]
+
+
+def _fisheye_fit(camera, size, views, names, object_points, opts, fix_k3, known, guess=None) -> _Fit:
+    """A fisheye lens: `cv2.fisheye.calibrate` (or the given intrinsics and a pose per view from its
+    undistorted corners) to start, then the bundle adjustment on this one camera, which holds what
+    the options hold (k3 k4, the principal point, fy = fx) as it does in the joint rig fit."""
+    planar = [_planar(object_points[views[v].ids]) for v in names]
+    obj = [p[0].reshape(1, -1, 3).astype(np.float64) for p in planar]  # (1, N, 3): cv2.fisheye takes no other shape
+    img = [views[v].points.reshape(1, -1, 2).astype(np.float64) for v in names]
+    w, h = size
+    if known is not None or guess is not None:
+        K, D = (known.K, known.dist) if known is not None else guess
+        K, D = K.copy(), lens.coefficients("fisheye", D)
+        rvecs, tvecs = _poses_through(camera, K, D, obj, img)
+    else:
+        flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | (cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4 if fix_k3 else 0)
+        K0, D0 = np.zeros((3, 3)), np.zeros(4)
+        if opts.centred:
+            K0 = np.array([[1.0, 0, (w - 1) / 2], [0, 1.0, (h - 1) / 2], [0, 0, 1]])
+            flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+        try:
+            _, K, D, rvecs, tvecs = cv2.fisheye.calibrate(obj, img, size, K0, D0, flags=flags,
+                                                          criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+            D = D.reshape(-1)
+        except cv2.error:
+            # OpenCV's start fails outright on some views (an assertion on a near-degenerate one);
+            # the equidistant lens that fits the views best is a start as good.
+            K, D, rvecs, tvecs = _equidistant_start(camera, size, obj, img)
+        if opts.square_pixels:
+            K[0, 0] = K[1, 1] = 0.5 * (K[0, 0] + K[1, 1])
+    # The adjustment: the camera is the world; each view's board pose is free.
+    ids = [np.full(o.shape[1], k) for k, o in enumerate(obj)]
+    problem = bundle.Problem(np.zeros(sum(o.shape[1] for o in obj), dtype=int), np.concatenate(ids), np.concatenate([o.reshape(-1, 3) for o in obj]),
+                             np.concatenate([i.reshape(-1, 2) for i in img]), 1, len(obj), np.array([True]))
+    fixed = np.zeros((1, bundle.N_INTR), dtype=bool)
+    names9 = bundle.FISHEYE_NAMES
+    if known is not None:
+        fixed[:] = True
+    else:
+        if fix_k3:
+            fixed[0, [names9.index("k3"), names9.index("k4")]] = True
+        if opts.centred:
+            fixed[0, [names9.index("cx"), names9.index("cy")]] = True
+    intr0 = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *D, 0.0]])
+    views0 = np.array([np.concatenate([np.reshape(rv, 3), np.reshape(tv, 3)]) for rv, tv in zip(rvecs, tvecs)])
+    sol = bundle.solve(problem, intr0, np.zeros((1, 6)), views0, fixed_cameras=(0,), fixed_intrinsics=fixed,
+                       square_pixels=np.array([opts.square_pixels and known is None]))
+    fx, fy, cx, cy, *d = sol.intrinsics[0]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    sq = np.sum(sol.residuals ** 2, axis=1)
+    view_rms = {v: float(np.sqrt(np.mean(sq[problem.view_idx == k]))) for k, v in enumerate(names)}
+    poses = {v: _board_pose(rodrigues(sol.views[k, :3]), sol.views[k, 3:].copy(), p[1], p[2]) for k, (v, p) in enumerate(zip(names, planar))}
+    return _Fit(sol.rms(), K, np.array(d[:4]), view_rms, poses, "fisheye")
+
+
+def _fit(camera, size, views, names, object_points, opts, fix_k3, fix_tangential, guess=None) -> _Fit:
+    known = opts.known.get(camera)
+    if known is not None:
+        known.check(size, f"camera '{camera}'")
+    if opts.model_of(camera) == "fisheye":
+        return _fisheye_fit(camera, size, views, names, object_points, opts, fix_k3, known, guess)
+    return _pinhole_fit(camera, size, views, names, object_points, opts, fix_k3, fix_tangential, known, guess)
+
+
 def calibrate_intrinsics(
     camera: str,
     size: tuple[int, int],
@@ -130,78 +291,46 @@ def calibrate_intrinsics(
             f"camera '{camera}': the board was found in only {len(keep)} image(s); at least {MIN_VIEWS_PER_CAMERA} are needed"
         )
     known = opts.known.get(camera)
-    fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else len(keep) < MIN_VIEWS_FOR_K3
-    k3_held_for_views = fix_k3 and opts.fix_k3 is None and known is None
-    # p1 p2 from a handful of views are as poorly observed as k3, and free to absorb a bad view
-    fix_tangential = opts.fix_tangential if opts.fix_tangential is not None else len(keep) < MIN_VIEWS_FOR_K3
-    flags = (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if fix_tangential else 0)
-    flags |= (cv2.CALIB_FIX_ASPECT_RATIO if opts.square_pixels else 0) | (cv2.CALIB_FIX_PRINCIPAL_POINT if opts.centred else 0)
-    # without an intrinsic guess OpenCV takes only the ratio fx/fy from K (1 here) and puts a held
-    # principal point at the image centre
-    K0 = np.eye(3) if (opts.square_pixels or opts.centred) else None
-    dist0 = None
-    if known is not None:  # only the board poses are solved
-        known.check(size, f"camera '{camera}'")
-        K0, dist0 = known.K.copy(), known.dist.copy()
-        flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_K1
-                 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST)
-    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    model = opts.model_of(camera)
+    fix_k3, fix_tangential, k3_held_for_views = _holds(camera, len(keep), opts)
     rounds = max(opts.max_rounds, len(keep) // 2)  # one view rejected per round; the last round only fits
     for round_ in range(rounds + 1):
-        names = list(keep)
-        planar = [_planar(object_points[keep[v].ids]) for v in names]
-        obj = [p[0].astype(np.float32) for p in planar]
-        img = [keep[v].points.astype(np.float32).reshape(-1, 1, 2) for v in names]
-        try:
-            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None if K0 is None else K0.copy(),
-                                                             None if dist0 is None else dist0.copy(), flags=flags, criteria=crit)
-        except cv2.error as exc:
-            raise CalibrationError(f"camera '{camera}': OpenCV could not calibrate it from these views ({exc.err})") from None
-        view_rms = {}
-        for v, o, i, rv, tv in zip(names, obj, img, rvecs, tvecs):
-            proj, _ = cv2.projectPoints(o, rv, tv, K, dist)
-            view_rms[v] = _view_rms(proj, i)
-        limits = _view_limits(view_rms, opts)
-        bad = sorted((v for v, e in view_rms.items() if e > limits[v]), key=lambda v: -view_rms[v] / limits[v])
+        fit = _fit(camera, size, keep, list(keep), object_points, opts, fix_k3, fix_tangential)
+        limits = _view_limits(fit.view_rms, opts)
+        bad = sorted((v for v, e in fit.view_rms.items() if e > limits[v]), key=lambda v: -fit.view_rms[v] / limits[v])
         if not bad or len(keep) - 1 < MIN_VIEWS_PER_CAMERA or round_ == rounds:
             break
         v = bad[0]  # the worst view only: the refit without it may clear the others
-        med = float(np.median([e for w, e in view_rms.items() if w != v]))
+        med = float(np.median([e for w, e in fit.view_rms.items() if w != v]))
         rejected.append(
-            Rejection(camera, v, "intrinsics", view_rms[v],
-                      f"reprojection RMS {view_rms[v]:.2f} px in the single-camera fit, above the limit {limits[v]:.2f} px "
+            Rejection(camera, v, "intrinsics", fit.view_rms[v],
+                      f"reprojection RMS {fit.view_rms[v]:.2f} px in the single-camera fit, above the limit {limits[v]:.2f} px "
                       f"(median of the other views {med:.2f} px)")
         )
         del keep[v]
-    poses = {v: _board_pose(cv2.Rodrigues(rv)[0], tv.reshape(3), p[1], p[2]) for v, rv, tv, p in zip(names, rvecs, tvecs, planar)}
     if known is not None:
-        return CameraIntrinsics(known.K.copy(), known.dist.copy(), float(rms), view_rms, poses, True, (), False, given=True)
-    held = (("k3",) if fix_k3 else ()) + (("p1", "p2") if fix_tangential else ())
-    return CameraIntrinsics(K, dist.reshape(-1)[:5], float(rms), view_rms, poses, fix_k3, held, k3_held_for_views)
+        return CameraIntrinsics(known.K.copy(), known.dist.copy(), fit.rms, fit.view_rms, fit.poses, True, (), False, given=True, model=model)
+    if model == "fisheye":
+        held = ("k3", "k4") if fix_k3 else ()
+    else:
+        held = (("k3",) if fix_k3 else ()) + (("p1", "p2") if fix_tangential else ())
+    return CameraIntrinsics(fit.K, fit.dist, fit.rms, fit.view_rms, fit.poses, fix_k3, held, k3_held_for_views, model=model)
 
 
 def resampled_spread(camera: str, size: tuple[int, int], views: dict[str, Corners], object_points: np.ndarray, opts: Options,
                      K: np.ndarray, dist: np.ndarray) -> float | None:
     """The focal length's relative spread over single-camera fits on subsets of these (vetted)
     views (calibration.quality.focal_spread); each fit starts from the full fit's K and distortion."""
-    known = opts.known.get(camera)
-    if known is not None:
+    if opts.known.get(camera) is not None:
         return None
-    fix_k3 = opts.fix_k3 if opts.fix_k3 is not None else len(views) < MIN_VIEWS_FOR_K3
-    fix_tangential = opts.fix_tangential if opts.fix_tangential is not None else len(views) < MIN_VIEWS_FOR_K3
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | (cv2.CALIB_FIX_K3 if fix_k3 else 0) | (cv2.CALIB_ZERO_TANGENT_DIST if fix_tangential else 0)
-    flags |= (cv2.CALIB_FIX_ASPECT_RATIO if opts.square_pixels else 0) | (cv2.CALIB_FIX_PRINCIPAL_POINT if opts.centred else 0)
-    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    fix_k3, fix_tangential, _ = _holds(camera, len(views), opts)
 
     def fit_fx(subset: list[str]) -> float:
-        obj = [_planar(object_points[views[v].ids])[0].astype(np.float32) for v in subset]
-        img = [views[v].points.astype(np.float32).reshape(-1, 1, 2) for v in subset]
-        _, K1, *_ = cv2.calibrateCamera(obj, img, size, K.copy(), dist.copy(), flags=flags, criteria=crit)
-        return float(K1[0, 0])
+        return float(_fit(camera, size, views, subset, object_points, opts, fix_k3, fix_tangential, guess=(K, dist)).K[0, 0])
 
     try:
         return focal_spread(sorted(views, key=natural_key), fit_fx)
-    except cv2.error:
+    except (cv2.error, CalibrationError):
         return None
 
 
@@ -214,9 +343,11 @@ def stereo_pair(
     left: str, right: str, corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
     object_points: np.ndarray, size: tuple[int, int],
 ) -> dict[str, Any] | None:
-    """cv2.stereoCalibrate with both intrinsics held: right-from-left (R, T) and its RMS."""
+    """cv2.stereoCalibrate with both intrinsics held: right-from-left (R, T) and its RMS in pixels.
+    A fisheye lens in the pair: on both cameras' undistorted normalised coordinates (OpenCV's stereo
+    calibration takes one lens model for both), the RMS then from reprojecting with each lens."""
     views = [v for v in intr[left].poses if v in intr[right].poses]
-    obj, pl, pr = [], [], []
+    obj, pl, pr, used = [], [], [], []
     for v in views:
         ids, a, b = _common(corners[left][v], corners[right][v])
         if len(ids) < 6:
@@ -224,13 +355,31 @@ def stereo_pair(
         obj.append(object_points[ids].astype(np.float32))
         pl.append(a.astype(np.float32).reshape(-1, 1, 2))
         pr.append(b.astype(np.float32).reshape(-1, 1, 2))
+        used.append(v)
     if not obj:
         return None
     L, Rr = intr[left], intr[right]
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    out = cv2.stereoCalibrate(obj, pl, pr, L.K, L.dist, Rr.K, Rr.dist, size, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
-    rms, R, T = out[0], out[5], out[6]
-    return {"rms_px": float(rms), "R": np.asarray(R), "T": np.asarray(T).reshape(3), "views": len(obj)}
+    if L.model == "pinhole" and Rr.model == "pinhole":
+        out = cv2.stereoCalibrate(obj, pl, pr, L.K, L.dist, Rr.K, Rr.dist, size, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+        rms, R, T = out[0], out[5], out[6]
+        return {"rms_px": float(rms), "R": np.asarray(R), "T": np.asarray(T).reshape(3), "views": len(obj)}
+    cams = [CameraModel(n, size[0], size[1], c.K, c.dist, model=c.model) for n, c in ((left, L), (right, Rr))]
+    norm = [[cam.undistort_normalized(p.reshape(-1, 2)) for p in pts] for cam, pts in zip(cams, (pl, pr))]
+    keep = [k for k in range(len(obj)) if np.all(np.isfinite(norm[0][k])) and np.all(np.isfinite(norm[1][k]))]
+    if not keep:
+        return None
+    out = cv2.stereoCalibrate([obj[k] for k in keep], *([n[k].reshape(-1, 1, 2).astype(np.float32) for k in keep] for n in norm),
+                              np.eye(3), np.zeros(5), np.eye(3), np.zeros(5), size, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+    R, T = np.asarray(out[5]), np.asarray(out[6]).reshape(3)
+    d = []
+    for k in keep:  # each view's board pose as the left camera's fit found it, carried to the right camera
+        Rb, tb = L.poses[used[k]]
+        Xl = object_points[_common(corners[left][used[k]], corners[right][used[k]])[0]] @ Rb.T + tb
+        d.append(cams[0].project(Xl)[0] - pl[k].reshape(-1, 2))
+        d.append(cams[1].project(Xl @ R.T + T)[0] - pr[k].reshape(-1, 2))
+    d = np.concatenate(d)
+    return {"rms_px": float(np.sqrt(np.mean(np.sum(d * d, axis=1)))), "R": R, "T": T, "views": len(keep)}
 
 
 def _initial_camera_poses(order: list[str], intr: dict[str, CameraIntrinsics], stereo: dict | None, right: str | None):
@@ -326,17 +475,35 @@ def calibrate_rig(
         Rwb, twb = compose(*invert_pose(Rcw, tcw), Rcb, tcb)
         view_pose[vi, :3] = rotation_vector(Rwb)
         view_pose[vi, 3:] = twb
-    intr0 = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d] for K, d in ((intr[c].K, intr[c].dist) for c in order)])
+    # five distortion slots whatever the lens (a fisheye's four terms leave the last at 0)
+    intr0 = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *lens.coefficients("pinhole", d)]
+                      for K, d in ((intr[c].K, intr[c].dist) for c in order)])
+    fisheye = np.array([intr[c].model == "fisheye" for c in order])
     cams0 = np.array([np.concatenate([rotation_vector(poses[c][0]), poses[c][1]]) for c in order])
     fixed_intr = np.zeros((len(order), bundle.N_INTR), dtype=bool)
     for ci, c in enumerate(order):
+        names9 = bundle.intrinsic_names(intr[c].model)
         for term in intr[c].held:
-            fixed_intr[ci, bundle.INTRINSIC_NAMES.index(term)] = True
+            fixed_intr[ci, names9.index(term)] = True
         if intr[c].given:
             fixed_intr[ci, :] = True
         elif opts.centred:
-            fixed_intr[ci, bundle.INTRINSIC_NAMES.index("cx")] = fixed_intr[ci, bundle.INTRINSIC_NAMES.index("cy")] = True
+            fixed_intr[ci, names9.index("cx")] = fixed_intr[ci, names9.index("cy")] = True
     square = np.array([opts.square_pixels and not intr[c].given for c in order])
+    prior_px = np.full((len(order), bundle.N_INTR), np.inf)  # each slot's prior sigma, for a corner noise of 1 px
+    priors: dict[str, dict[str, float]] = {}
+    for ci, c in enumerate(order):
+        if intr[c].given and opts.prior:
+            priors[c] = prior_sigmas(opts.known[c], opts.prior)
+            names9 = bundle.intrinsic_names(intr[c].model)
+            intr[c].prior = priors[c]
+            for term, sigma in priors[c].items():
+                fixed_intr[ci, names9.index(term)] = False
+                prior_px[ci, names9.index(term)] = sigma
+    # The priors weigh against the corners in their noise's units: their measured noise, first from
+    # the single-camera fits, then from the joint fit's views.
+    noise_px = float(np.median([e for c in order for e in intr[c].view_rms.values()])) / np.sqrt(2.0)
+    prior_mean = intr0.copy()  # the given values: the priors' centres whatever the rounds move
 
     active = np.ones(len(uv), dtype=bool)
     corners_rejected = np.zeros(len(order), dtype=int)
@@ -344,10 +511,11 @@ def calibrate_rig(
     sol = None
     for round_ in range(opts.max_rounds):
         say(f"bundle adjustment, round {round_ + 1}")
-        problem = bundle.Problem(cam_idx[active], view_idx[active], object_points[ids[active]], uv[active], len(order), len(views))
+        problem = bundle.Problem(cam_idx[active], view_idx[active], object_points[ids[active]], uv[active], len(order), len(views), fisheye)
         w = None if sigma is None else 1.0 / sigma[active] ** 2
         sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr, weights=w,
-                           square_pixels=square)
+                           square_pixels=square, prior_std=prior_px / max(noise_px, 1e-3) if priors else None,
+                           prior_mean=prior_mean)
         intr0, cams0, view_pose = sol.intrinsics, sol.cameras, sol.views
         if round_ == opts.max_rounds - 1:
             break
@@ -376,6 +544,7 @@ def calibrate_rig(
             lookup = dict(zip(uniq.tolist(), view_sigma.tolist()))
             med_sigma = float(np.median(view_sigma))
             sigma = np.array([lookup.get(k, med_sigma) for k in all_key.tolist()]) / med_sigma
+            noise_px = med_sigma
         med = float(np.median(rms))
         for k, e, e_all, f, b in zip(uniq, rms, rms_all, off_frac, bad_obs):
             if not b:
@@ -404,7 +573,8 @@ def calibrate_rig(
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         R = rodrigues(sol.cameras[ci, :3])
         w, h = detections.image_size[c]
-        cameras.append(CameraModel(c, w, h, K, np.array(d), R, sol.cameras[ci, 3:].copy()))
+        model = intr[c].model
+        cameras.append(CameraModel(c, w, h, K, np.array(d[: lens.N_DIST[model]]), R, sol.cameras[ci, 3:].copy(), model))
     rig = RigCalibration(cameras, {})
     obs = Observations(order, views, cam_idx[active], view_idx[active], ids[active], uv[active], sol.residuals)
     result = CalibrationResult(rig, left, right, obs, intr, rejected, stereo, sol, dict(detections.image_size), dict(detections.images_seen),

@@ -101,7 +101,7 @@ def _camera_stations(cam: CameraModel, board: BoardSpec, few: bool) -> list[Stat
     for grid, factor in grids:
         for k, ((fu, fv), (sy, sp)) in enumerate(grid):
             depth = near * factor
-            ray = np.array([(fu * (cam.width - 1) - cam.cx) / cam.fx, (fv * (cam.height - 1) - cam.cy) / cam.fy, 1.0])
+            ray = cam.pixel_rays(np.array([fu * (cam.width - 1), fv * (cam.height - 1)]))  # through the lens
             R_cb = _face(ray, math.radians(TILT_DEG) * sy, math.radians(TILT_DEG) * sp, math.radians(10.0) * (1 if k % 2 else -1))
             centre = cam.center + cam.R.T @ (ray * depth)
             out.append(_placed(cam.R.T @ R_cb, centre, board, cam.name))

@@ -55,7 +55,12 @@ class CameraRays:
         yd = (v - cam.cy) / cam.fy
         xd = (u - cam.cx - cam.K[0, 1] * yd) / cam.fx
         xy = np.stack([xd, yd], axis=-1)
-        if cam.has_distortion:
+        if cam.model == "fisheye":
+            xy = cam.undistort_normalized(np.stack([u, v], axis=-1))
+            if not np.all(np.isfinite(xy)):
+                raise SimulatorError(f"camera {cam.name}: its fisheye lens sees 90 degrees or more off its axis inside "
+                                     f"the image, which this renderer's rays (x, y, 1) cannot represent")
+        elif cam.has_distortion:
             # Newton's method on the distortion polynomial: every ray exact to ~1e-12.
             for it in range(30):
                 dxy = cam.distort_normalized(xy)
@@ -139,7 +144,7 @@ _RAYS_LOCK = threading.Lock()
 
 def camera_rays(cam: CameraModel) -> CameraRays:
     """The cached rays of a camera (keyed by its intrinsics and size, not its pose)."""
-    key = (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes())
+    key = (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes(), cam.model)
     with _RAYS_LOCK:
         rays = _RAYS.get(key)
         if rays is not None:

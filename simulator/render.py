@@ -221,7 +221,7 @@ class _StaticLayer:
 
 
 def _static_layer(scene, camera, shader, batches, boxes, rays, s, normals) -> _StaticLayer:
-    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), camera.R.tobytes(),
+    key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), camera.model, camera.R.tobytes(),
            camera.t.tobytes(), s, normals)
     cache = scene.static_layers
     with scene.lock:

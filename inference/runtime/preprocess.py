@@ -130,7 +130,7 @@ class InputPreparer:
         self._resamplers: dict[tuple, Resampler] = {}
 
     def resampler(self, camera: CameraModel, size: tuple[int, int]) -> Resampler:
-        key = (camera.name, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), tuple(size))
+        key = (camera.name, camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), camera.model, tuple(size))
         r = self._resamplers.get(key)
         if r is None:
             if len(self._resamplers) >= self.cache_size:

@@ -54,7 +54,7 @@ class Preprocessor:
         self._max = max_tables
 
     def _resampler(self, camera: CameraModel, size: tuple[int, int]) -> Resampler:
-        key = (camera.name, camera.width, camera.height, camera.K.tobytes(), np.asarray(camera.dist).tobytes(), tuple(size))
+        key = (camera.name, camera.width, camera.height, camera.K.tobytes(), np.asarray(camera.dist).tobytes(), camera.model, tuple(size))
         r = self._tables.get(key)
         if r is None:
             if len(self._tables) >= self._max:

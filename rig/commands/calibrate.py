@@ -42,9 +42,17 @@ def register(subparsers) -> None:
     r.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto",
                    help="tangential terms p1 p2: hold them at 0 (lenses centred on the sensor), fit them, or auto: "
                         "fit them from 10 views per camera (default)")
+    r.add_argument("--fisheye", action="append", nargs="?", const="*", metavar="NAME",
+                   help="fit OpenCV's fisheye lens model (k1..k4; wide lenses such as GoPros') to this camera, or to every camera "
+                        "when no name is given (repeatable; default: the pinhole model with k1 k2 p1 p2 k3)")
     r.add_argument("--intrinsics", metavar="FILE",
                    help="hold these cameras' intrinsics fixed while the rig is solved: a `rig calibrate intrinsics` file, "
                         "a calibration file, or an anipose calibration TOML")
+    r.add_argument("--prior-sigma", metavar="SPEC",
+                   help="with --intrinsics: use the given intrinsics as priors, not held fixed: each term named may move "
+                        "from its given value at a cost of ((change / SIGMA))^2 against the corners' squared errors in "
+                        "their measured noise; SPEC as f=1%%,c=8,dist=0.02 (f c fx fy cx cy in px or %% of the focal "
+                        "length; k1 k2 k3 k4 p1 p2, or dist for all); terms not named stay held")
     r.add_argument("--hold", action="append", metavar="NAME",
                    help="with --intrinsics: hold only this camera (repeatable; default: every camera the file has)")
     r.add_argument("--force", action="store_true", help="replace an existing calibration file")
@@ -67,6 +75,9 @@ def register(subparsers) -> None:
     i.add_argument("--fix-principal-point", action="store_true",
                    help="hold the principal point at the image centre: for weak data (a board in few parts of the image)")
     i.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto", help="p1 p2, as for `run` (default auto)")
+    i.add_argument("--fisheye", action="append", nargs="?", const="*", metavar="NAME",
+                   help="fit OpenCV's fisheye lens model (k1..k4) to this camera, or to every camera when no name is given "
+                        "(repeatable; with --k3, k3 and k4 are held or fitted together)")
     i.add_argument("--force", action="store_true", help="replace an existing file")
     i.add_argument("--json", action="store_true", help="print one JSON object with the results")
     i.set_defaults(func=cmd_intrinsics)
@@ -152,6 +163,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     board = load_board(args.board)
     images = find_images(args.images)
     known = _known_intrinsics(args, images.cameras)
+    _check_fisheye(args, images.cameras)
+    prior = {}
+    if args.prior_sigma is not None:
+        from calibration.known import parse_prior, prior_sigmas
+
+        if not known:
+            raise ConfigError("--prior-sigma needs --intrinsics FILE (the values the priors are centred on)")
+        prior = parse_prior(args.prior_sigma)
+        for k in known.values():
+            prior_sigmas(k, prior)  # a term the camera's lens lacks is refused before the detection
     roles = dict(images.roles)
     if args.config:
         cfg = load_config(args.config, check_calibration=False)
@@ -164,7 +185,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 roles[role] = cam.name
     # Where the result goes is checked before the detection and the solve, which take minutes.
     output, detections = _detect_for(args, images, board)
-    opts = _lens_options(args, left=args.left or roles.get("left"), right=args.right or roles.get("right"), known=known)
+    opts = _lens_options(args, left=args.left or roles.get("left"), right=args.right or roles.get("right"), known=known, prior=prior)
     status = _status()
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
@@ -185,9 +206,10 @@ def cmd_run(args: argparse.Namespace) -> int:
             "baseline_m": meta["baseline_m"],
             "epipolar_rms_px": (meta["report"]["stereo"] or {}).get("epipolar_rms_px"),
             "stereo_pair": meta["stereo_pair"],
-            "intrinsics": {c.name: {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "dist": c.dist.tolist()} for c in rig.cameras},
+            "intrinsics": {c.name: {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "dist": c.dist.tolist(), "model": c.model}
+                           for c in rig.cameras},
             # every camera in the rig frame (the left camera's): world-to-camera R, t (metres)
-            "per_camera": {c.name: {"K": c.K.tolist(), "dist": c.dist.tolist(), "R": c.R.tolist(), "t": c.t.tolist(),
+            "per_camera": {c.name: {"K": c.K.tolist(), "dist": c.dist.tolist(), "model": c.model, "R": c.R.tolist(), "t": c.t.tolist(),
                                         "width": c.width, "height": c.height, "rms_px": meta["rms_px"].get(c.name),
                                         "verdict": meta["report"]["cameras"][c.name].get("verdict"),
                                         "reasons": meta["report"]["cameras"][c.name].get("reasons"),
@@ -238,8 +260,18 @@ def _lens_options(args: argparse.Namespace, **more):
     from calibration.solve import Options
 
     choice = {"auto": None, "hold": True, "fit": False}
+    fisheye = args.fisheye or ()
     return Options(outlier_px=args.outlier_px, fix_k3=choice[args.k3], fix_tangential=choice[args.tangential],
-                   square_pixels=args.fix_aspect, centred=args.fix_principal_point, **more)
+                   square_pixels=args.fix_aspect, centred=args.fix_principal_point,
+                   fisheye=True if "*" in fisheye else frozenset(fisheye), **more)
+
+
+def _check_fisheye(args: argparse.Namespace, cameras: list[str]) -> None:
+    from rig.errors import ConfigError
+
+    for name in args.fisheye or ():
+        if name != "*" and name not in cameras:
+            raise ConfigError(f"--fisheye {name}: no images of camera '{name}' (cameras: {', '.join(cameras)})")
 
 
 def _detect_for(args: argparse.Namespace, images, board):
@@ -292,6 +324,7 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
         raise ConfigError(f"--outlier-px must be positive, got {args.outlier_px}")
     board = load_board(args.board)
     images = find_camera_images(args.images, args.camera)
+    _check_fisheye(args, images.cameras)
     output, detections = _detect_for(args, images, board)
     opts = _lens_options(args)
     status = _status()
@@ -324,7 +357,7 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
         for name, r in results.items():
             d = r.to_dict()
             spread = "not measured" if d["focal_spread_pct"] is None else f"{d['focal_spread_pct']:.2f} %"
-            print(f"{name}: fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} cy {d['cy']:.1f}  RMS {d['rms_px']:.3f} px  "
+            print(f"{name}: {'fisheye ' if r.model == 'fisheye' else ''}fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} cy {d['cy']:.1f}  RMS {d['rms_px']:.3f} px  "
                   f"views {d['views_used']}/{d['views_found']} of {detections.images_seen.get(name)} images  focal spread {spread}  "
                   f"coverage {100 * d['coverage']:.0f} %  -> {r.verdict}")
             for reason in r.reasons:
