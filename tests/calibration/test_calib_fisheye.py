@@ -188,6 +188,10 @@ def test_rendered_fisheye_views_give_the_lens_through_the_cli(tmp_path):
     from calibration.report import format_report
 
     assert "held at 0 (not fitted): k3 k4 (every camera)" in format_report(RigCalibration.load(tmp_path / "calib.json"))
+    # the intrinsics file's lens, held in a rig solve, stays fisheye
+    held = run_json("calibrate", "run", "--images", tmp_path / "views", "--board", tmp_path / "board.toml",
+                    "-o", tmp_path / "held.json", "--intrinsics", tmp_path / "fisheye.json")
+    assert held["per_camera"]["gopro"]["model"] == "fisheye" and held["per_camera"]["gopro"]["dist"] == pytest.approx(fe["dist"], abs=1e-6)
 
 
 def test_a_fisheye_calibration_file_round_trips_and_bad_ones_say_why(tmp_path):
