@@ -1,0 +1,1 @@
+"""Capture daemons: one process per camera, frames in shared memory, a control API."""
