@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import os
 import queue
 import threading
 import time
@@ -36,8 +37,10 @@ if TYPE_CHECKING:  # annotations only: rig.config imports the sim backend to che
 SCHEME = "sim"
 DEFAULT_NAMES = ("left", "sup1", "sup2", "sup3", "sup4", "right")
 
-# Simulated time zero: scene time t = (monotonic_ns - SIM_EPOCH_NS) / 1e9 while running live.
-SIM_EPOCH_NS = monotonic_ns()
+# Simulated time zero: scene time t = (monotonic_ns - SIM_EPOCH_NS) / 1e9 while running live. Camera
+# daemons of one rig are separate processes that must show the same scene instant at the same host
+# time: `rig up` gives them all its own zero in $RIG_SIM_EPOCH_NS (the monotonic clock is system-wide).
+SIM_EPOCH_NS = int(os.environ.get("RIG_SIM_EPOCH_NS") or 0) or monotonic_ns()
 
 ImageSource = Callable[[float, float, np.random.Generator], np.ndarray]
 

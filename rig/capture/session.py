@@ -7,6 +7,9 @@
         print(session.camera_stats(), session.errors())
     # leaving the block stops the train, drains the last frames, closes everything
 
+A camera whose daemon runs on this host (`rig daemon`, `rig up`) is read from the daemon's frame
+ring instead of being opened here (rig.daemon.client); the FrameSets are the same either way.
+
 `start(pulses=N)` gives a train of a fixed length (the board says DONE: `train_done`); `stop()`
 ends a run and flushes the last sets.
 
@@ -30,7 +33,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Optional
 
-from rig.cameras import open_camera as _open_camera
+from rig.daemon.client import open_camera as _open_camera  # a camera's daemon when one serves it, else in-process
 from rig.config import RigConfig
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceError
 from sync.board import BoardEvent, Pulse, TriggerBoard
@@ -120,7 +123,8 @@ class RigSession:
         if trig.uri.startswith("sim://"):
             from rig.cameras.sim import emulated_trigger_board  # only sim rigs need the simulator
 
-            not_sim = [c.name for c in hardware if c.scheme != "sim"]
+            # sim cameras, in this process or in daemons (their trigger input takes the emulated edges)
+            not_sim = [c.name for c in hardware if c.scheme not in ("sim", "daemon")]
             if not_sim:
                 raise ConfigError(f"trigger.uri: an emulated board ({trig.uri}) cannot trigger real cameras ({', '.join(not_sim)})")
             self.emulator = emulated_trigger_board(trig.uri, trig.sim, [self._trigger_input(c.name) for c in hardware])

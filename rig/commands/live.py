@@ -59,7 +59,7 @@ def cmd_live(args: argparse.Namespace) -> int:
     token = args.token
     if token is not None and len(token) < 8:
         raise ConfigError("live: --token must be at least 8 characters")
-    from rig.live.server import is_loopback_name
+    from rig.http_access import is_loopback_name
 
     if token is None and not is_loopback_name(host):
         token = secrets.token_urlsafe(18)  # a non-loopback bind is never open

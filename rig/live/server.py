@@ -29,28 +29,24 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
-import hmac
-import ipaddress
 import logging
 import math
 import signal
-import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
-from urllib.parse import parse_qs, urlsplit
 
 import uvicorn
 from fastapi import FastAPI, Request, WebSocket
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.background import BackgroundTask
-from starlette.requests import cookie_parser
 from starlette.websockets import WebSocketDisconnect
 
 from rig.errors import RigError
+from rig.http_access import AccessGuard, bind_socket, token_matches
 from rig.live import protocol
 from rig.live.api import Engine, Viewer
 
@@ -67,89 +63,6 @@ WS_MAX_SIZE = 64 * 1024  # a browser message above this closes its connection (1
 SNAPSHOT_TIMEOUT_S = 5.0
 GRACE_S = 3.0  # how long a stopping server waits for connections to finish
 MJPEG_BOUNDARY = "rigliveframe"
-
-
-# --- access ---------------------------------------------------------------------------------------------
-def _headers(scope) -> dict[str, str]:
-    out: dict[str, str] = {}
-    for k, v in scope.get("headers", []):
-        out.setdefault(k.decode("latin-1").lower(), v.decode("latin-1"))
-    return out
-
-
-def _host_name(host_header: str) -> str:
-    """'127.0.0.1:8080' -> '127.0.0.1', '[::1]:8080' -> '::1'."""
-    host = host_header.strip().lower()
-    if host.startswith("["):
-        return host[1:].partition("]")[0]
-    return host.rpartition(":")[0] if host.count(":") == 1 else host
-
-
-def is_loopback_name(name: str) -> bool:
-    if name == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(name).is_loopback
-    except ValueError:
-        return False
-
-
-def _same_origin(headers: dict[str, str]) -> bool:
-    """A WebSocket handshake from a browser carries Origin: it must be this server's own page."""
-    origin = headers.get("origin")
-    if origin is None:
-        return True  # not a browser (ffplay, a script): nothing to forge
-    parts = urlsplit(origin)
-    return parts.scheme in ("http", "https") and bool(parts.netloc) and parts.netloc.lower() == headers.get("host", "").lower()
-
-
-def _token_matches(candidate: Optional[str], token: str) -> bool:
-    return candidate is not None and hmac.compare_digest(candidate.encode("utf-8", "surrogatepass"), token.encode("utf-8"))
-
-
-def _candidates(scope, headers: dict[str, str]) -> list[str]:
-    found = parse_qs(scope.get("query_string", b"").decode("latin-1")).get("token", [])[:4]
-    auth = headers.get("authorization", "")
-    scheme, _, value = auth.partition(" ")
-    if scheme.lower() == "bearer" and value.strip():
-        found.append(value.strip())
-    cookie = cookie_parser(headers.get("cookie", "")).get(COOKIE)
-    if cookie:
-        found.append(cookie)
-    return found
-
-
-class AccessGuard:
-    """ASGI middleware in front of every route, static files and the WebSocket included."""
-
-    def __init__(self, app, token: Optional[str]):
-        self.app = app
-        self.token = token
-
-    async def __call__(self, scope, receive, send):
-        if scope["type"] not in ("http", "websocket"):
-            return await self.app(scope, receive, send)
-        headers = _headers(scope)
-        if self.token is None:
-            host = _host_name(headers.get("host", ""))
-            if host and not is_loopback_name(host):  # (no Host at all: not a browser, nothing to rebind)
-                return await self._deny(scope, receive, send, 403, "this server has no token and answers on a loopback address only")
-        elif not any(_token_matches(c, self.token) for c in _candidates(scope, headers)):
-            return await self._deny(scope, receive, send, 401, "a valid token is needed (?token=, or Authorization: Bearer)")
-        if scope["type"] == "websocket" and not _same_origin(headers):
-            return await self._deny(scope, receive, send, 403, "WebSocket from another origin refused")
-        return await self.app(scope, receive, send)
-
-    @staticmethod
-    async def _deny(scope, receive, send, status: int, reason: str) -> None:
-        response = JSONResponse({"error": reason}, status_code=status,
-                                headers={"WWW-Authenticate": "Bearer"} if status == 401 else None)
-        if scope["type"] == "http":
-            await response(scope, receive, send)
-        elif "websocket.http.response" in scope.get("extensions", {}):
-            await response(scope, receive, send)  # the handshake is answered with this HTTP response
-        else:
-            await send({"type": "websocket.close", "code": 1008, "reason": reason})  # before accept
 
 
 # --- the hub: what every connection shares -------------------------------------------------------------------
@@ -339,14 +252,14 @@ def create_app(engine: Engine, token: Optional[str], *, max_viewers: int = MAX_V
 
     app = FastAPI(title="rig live", docs_url=None, redoc_url=None, openapi_url=None, lifespan=lifespan)
     app.state.live = hub
-    app.add_middleware(AccessGuard, token=token)
+    app.add_middleware(AccessGuard, token=token, cookie=COOKIE)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
     @app.get("/", include_in_schema=False)
     async def index(request: Request):
         response = FileResponse(STATIC_DIR / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"})
         given = request.query_params.get("token")
-        if token is not None and _token_matches(given, token):
+        if token is not None and token_matches(given, token):
             # the page's own requests (script, style, WebSocket) then carry it
             response.set_cookie(COOKIE, token, httponly=True, samesite="strict", path="/")
         return response
@@ -453,23 +366,6 @@ class _Uvicorn(uvicorn.Server):
         await super().shutdown(sockets=sockets)
 
 
-def _bind(host: str, port: int) -> socket.socket:
-    try:
-        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
-        sock = socket.socket(family, kind, proto)
-    except OSError as exc:
-        raise RigError(f"live: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(address)
-        sock.listen(128)
-    except OSError as exc:
-        sock.close()
-        raise RigError(f"live: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
-    sock.setblocking(False)
-    return sock
-
-
 class LiveServer:
     """The app on uvicorn, on a socket bound at construction (port 0: any free port; `.port` says
     which). `start()` runs it in a thread (`stop()` from any thread ends it); `run()` runs it in the
@@ -479,7 +375,7 @@ class LiveServer:
                  log_level: str = "warning", **app_options):
         self.app = create_app(engine, token, **app_options)
         self.host = host
-        self._sock = _bind(host, port)
+        self._sock = bind_socket(host, port, "live")
         self.port: int = self._sock.getsockname()[1]
         config = uvicorn.Config(self.app, log_config=None, log_level=log_level, access_log=False, lifespan="on",
                                 ws_per_message_deflate=False, ws_max_size=WS_MAX_SIZE,
