@@ -239,3 +239,17 @@ def test_a_session_on_another_host_reads_the_daemons_over_tcp(tmp_path):
         assert not (tmp_path / "shm-b").exists() or not any((tmp_path / "shm-b").rglob("*"))
     finally:
         up.stop()
+
+
+def test_bad_daemon_commands_say_what_is_wrong_in_one_line(tmp_path):
+    from tests.rig.cli_helpers import assert_one_line_error
+
+    config = rig_file(tmp_path, n=2)
+    env = env_for(tmp_path / "shm")
+    assert_one_line_error(rig("daemon", "middle", "-c", config, env=env), "no camera named 'middle'", "left, right")
+    assert_one_line_error(rig("daemon", "left", "-c", config, "--slots", 0, env=env), "--slots")
+    assert_one_line_error(rig("daemon", "left", "-c", tmp_path / "missing.toml", env=env), "missing.toml")
+    assert_one_line_error(rig("up", "-c", config, "--status", env=env), "no supervisor runs", code=1)
+    assert_one_line_error(rig("up", "-c", config, "--stale", -1, env=env), "--stale")
+    down = rig("down", "-c", config, env=env)
+    assert down.returncode == 0 and "no supervisor was running" in down.stdout
