@@ -8,7 +8,8 @@
     # leaving the block stops the train, drains the last frames, closes everything
 
 A camera whose daemon runs on this host (`rig daemon`, `rig up`) is read from the daemon's frame
-ring instead of being opened here (rig.daemon.client); the FrameSets are the same either way.
+ring instead of being opened here (rig.daemon.client), and a trigger board whose daemon owns it is
+driven through that daemon (rig.daemon.board_client); the FrameSets are the same either way.
 
 `start(pulses=N)` gives a train of a fixed length (the board says DONE: `train_done`); `stop()`
 ends a run and flushes the last sets.
@@ -120,6 +121,13 @@ class RigSession:
     def _open_board(self) -> None:
         trig = self.config.trigger
         hardware = [c for c in self.config.cameras if c.trigger == "hardware"]
+        from rig.daemon.board_client import RemoteBoard, board_daemon
+
+        owner = board_daemon(self.config.name)
+        if owner is not None:  # the board's daemon owns it (rig up): pulses and clock come from there
+            self.board = RemoteBoard(self.config.name, owner)
+            self._connect_board()
+            return
         if trig.uri.startswith("sim://"):
             from rig.cameras.sim import emulated_trigger_board  # only sim rigs need the simulator
 
@@ -132,6 +140,10 @@ class RigSession:
         else:
             url = trig.uri
         self.board = TriggerBoard(url)
+        self._connect_board()
+
+    def _connect_board(self) -> None:
+        trig = self.config.trigger
         self.board.subscribe(on_pulse=self._on_pulse, on_event=self._on_board_event)
         try:
             self.board.connect()

@@ -15,12 +15,13 @@ def register(sub) -> None:
                        description="One camera as a process: frames into its shared-memory ring (/dev/shm/rig/RIG/CAMERA, or "
                                    "$RIG_SHM_ROOT), an HTTP control API, mDNS advertisement. Sessions on this host (rig record, "
                                    "rig live, ...) read its frames when it runs. Stops on SIGINT/SIGTERM.")
-    d.add_argument("camera", metavar="CAMERA", help="the camera's name in the config")
+    d.add_argument("camera", metavar="CAMERA", nargs="?", help="the camera's name in the config")
+    d.add_argument("--board", action="store_true", help="own the rig's trigger board instead (sessions drive it through this daemon)")
     d.add_argument("-c", "--config", type=Path, required=True, help="rig configuration (TOML)")
     d.add_argument("--host", default="127.0.0.1", help="address of the control API (default 127.0.0.1; any other needs a token)")
     d.add_argument("--port", type=int, default=0, help="port of the control API (default: any free port)")
     d.add_argument("--token", help="token the API requires (default: generated and printed when --host is not loopback)")
-    d.add_argument("--slots", type=int, default=8, help="frames the ring holds (default 8)")
+    d.add_argument("--slots", type=int, help="frames the ring holds (default: about a second of frames within 64 MB, at least 8)")
     d.add_argument("--no-advertise", action="store_true", help="do not advertise the daemon on mDNS")
     d.add_argument("--interface", action="append", metavar="ADDR", help="advertise on this interface address only (repeatable)")
     d.set_defaults(func=cmd_daemon)
@@ -52,11 +53,15 @@ def cmd_daemon(args: argparse.Namespace) -> int:
     from rig.errors import ConfigError
     from rig.http_access import is_loopback_name
 
-    if not 1 <= args.slots <= 1024:
+    if args.slots is not None and not 1 <= args.slots <= 1024:
         raise ConfigError(f"--slots must be from 1 to 1024, got {args.slots}")
     if not 0 <= args.port <= 65535:
         raise ConfigError(f"--port must be from 0 to 65535, got {args.port}")
+    if args.board == (args.camera is not None):
+        raise ConfigError("name one CAMERA, or give --board for the trigger board's daemon")
     cfg = load_config(args.config, check_calibration=False)
+    if args.board:
+        return _board_daemon(cfg)
     if args.camera not in [c.name for c in cfg.cameras]:
         raise ConfigError(f"{args.config}: no camera named {args.camera!r} (cameras: {', '.join(c.name for c in cfg.cameras)})")
     token = args.token
@@ -69,6 +74,20 @@ def cmd_daemon(args: argparse.Namespace) -> int:
     try:
         daemon.open()
         print(f"rig daemon {args.camera}: serving {daemon.ring.path}, API {daemon.api.url}", file=sys.stderr, flush=True)
+        daemon.run()
+    finally:
+        daemon.close()
+    return 0
+
+
+def _board_daemon(cfg) -> int:
+    from rig.daemon.board_daemon import BoardDaemon
+
+    daemon = BoardDaemon(cfg)
+    _stop_on_signals(daemon.stop_event)
+    try:
+        daemon.open()
+        print(f"rig daemon --board: trigger board {cfg.trigger.uri}, API {daemon.api.url}", file=sys.stderr, flush=True)
         daemon.run()
     finally:
         daemon.close()
@@ -102,7 +121,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     sup = Supervisor(cfg, args.config, stale_s=args.stale, daemon_args=("--no-advertise",) if args.no_advertise else (),
                      say=lambda line: print(f"rig up: {line}", flush=True))
     _stop_on_signals(sup.stop_event)
-    print(f"rig up: starting {len(cfg.cameras)} camera daemons of rig '{cfg.name}' ({', '.join(c.name for c in cfg.cameras)})", flush=True)
+    board = " and its trigger board's" if cfg.trigger is not None else ""
+    print(f"rig up: starting {len(cfg.cameras)} camera daemons{board} of rig '{cfg.name}' ({', '.join(c.name for c in cfg.cameras)})", flush=True)
     sup.run()
     print(json.dumps({"restarts": {c.camera: c.restarts for c in sup.children.values()}}), flush=True)
     return 0

@@ -30,6 +30,8 @@ import threading
 import time
 from typing import Any, Optional
 
+import numpy as np
+
 from common.files import atomic_write_json
 from rig.cameras import open_camera
 from rig.config import RigConfig
@@ -39,7 +41,17 @@ from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceErr
 from sync.frames import monotonic_ns
 
 TRIGGER = struct.Struct("<cqq")  # kind (b"S" | b"H"), pulse index, host time ns
-DEFAULT_SLOTS = 8
+# A reader may fall behind (a busy host: a session's threads wait for the GIL, its disk for writes): the
+# ring keeps about a second of frames, within 64 MB, and at least 8.
+RING_SECONDS = 1.0
+RING_MAX_BYTES = 64 << 20
+MIN_SLOTS = 8
+
+
+def default_slots(cfg) -> int:
+    shape, dtype = ring_geometry(cfg)
+    frame_bytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    return max(MIN_SLOTS, min(int(np.ceil(cfg.fps * RING_SECONDS)), RING_MAX_BYTES // max(frame_bytes, 1)))
 RECONNECT_EVERY_S = 1.0
 # what the API may change while the daemon runs, and the range each takes
 SETTINGS = {"exposure_us": (1.0, 10_000_000.0), "gain": (0.0, 48.0), "fps": (0.1, 1000.0)}
@@ -57,11 +69,12 @@ def ring_geometry(cfg) -> tuple[tuple[int, ...], str]:
 
 class CameraDaemon:
     def __init__(self, config: RigConfig, camera: str, *, host: str = "127.0.0.1", port: int = 0, token: Optional[str] = None,
-                 advertise: bool = True, interfaces: Optional[list[str]] = None, slots: int = DEFAULT_SLOTS):
+                 advertise: bool = True, interfaces: Optional[list[str]] = None, slots: Optional[int] = None):
         self.config = config
         self.cfg = config.camera(camera)
         self.host, self.port, self.token = host, port, token
-        self.advertise, self.interfaces, self.slots = advertise, interfaces, slots
+        self.advertise, self.interfaces = advertise, interfaces
+        self.slots = slots or default_slots(self.cfg)
         self.camera = None
         self.ring: Optional[FrameRing] = None
         self.state = "starting"  # starting | running | stopped (acquisition paused) | lost | closing

@@ -2,6 +2,7 @@
 
     <root>/<rig>/<camera>          the camera's frame ring (rig.daemon.ring)
     <root>/<rig>/<camera>.json     how to reach its daemon: pid, API URL, trigger port (written once it serves)
+    <root>/<rig>/@board.json       how to reach the trigger board's daemon, with its heartbeat
     <root>/<rig>/supervisor.json   `rig up`'s state: its pid, each daemon's pid, restarts, health
 
 The root is /dev/shm/rig (memory, gone at reboot, as frames should be), or $RIG_SHM_ROOT: two
@@ -37,6 +38,11 @@ def ring_path(rig: str, camera: str) -> Path:
 
 def info_path(rig: str, camera: str) -> Path:
     return rig_dir(rig) / f"{_safe(camera)}.json"
+
+
+def board_info_path(rig: str) -> Path:
+    """The trigger board daemon's info file ('@' is never in a camera's file name: _safe replaces it)."""
+    return rig_dir(rig) / "@board.json"
 
 
 def supervisor_path(rig: str) -> Path:

@@ -12,8 +12,8 @@ sharing one simulated scene clock, $RIG_SIM_EPOCH_NS), then watches them ten tim
 Its state (its pid, per camera: pid, state, restarts, last event) is rewritten every second to
 <root>/<rig>/supervisor.json (rig.daemon.paths); `rig down` signals the pid found there and waits.
 
-The trigger board stays with the session that runs the rig (`rig record`, `rig live`, ...): it
-opens the board (or its emulator) itself and fires the daemons' cameras through their trigger inputs.
+A rig with a trigger board gets its owner too (`rig daemon --board`, listed as `@board`): sessions
+drive the board through it, and for a `sim://` board its emulator fires the camera daemons.
 """
 from __future__ import annotations
 
@@ -33,6 +33,7 @@ from rig.daemon import paths
 from rig.daemon.ring import RingError, RingReader
 from sync.frames import monotonic_ns
 
+BOARD = "@board"  # the trigger board daemon's entry among the children
 BACKOFF_START_S = 0.2
 BACKOFF_MAX_S = 5.0
 HEALTHY_AFTER_S = 30.0
@@ -61,6 +62,8 @@ class Supervisor:
         self.daemon_args = tuple(daemon_args)
         self.say = say
         self.children = {c.name: Child(c.name) for c in config.cameras}
+        if config.trigger is not None:  # the board's owner, under a name no camera file can have
+            self.children[BOARD] = Child(BOARD)
         self.events: list[dict] = []
         self.stop_event = threading.Event()
         self.env = dict(os.environ, RIG_SIM_EPOCH_NS=os.environ.get("RIG_SIM_EPOCH_NS") or str(monotonic_ns()))
@@ -72,7 +75,8 @@ class Supervisor:
         self.say(f"{camera}: {detail}")
 
     def _spawn(self, child: Child) -> None:
-        cmd = [sys.executable, "-m", "rig", "daemon", child.camera, "-c", str(self.config_path), *self.daemon_args]
+        who = ["--board"] if child.camera == BOARD else [child.camera]
+        cmd = [sys.executable, "-m", "rig", "daemon", *who, "-c", str(self.config_path), *self.daemon_args]
         child.proc = subprocess.Popen(cmd, env=self.env, stdin=subprocess.DEVNULL, start_new_session=True)
         child.started = time.monotonic()
         child.state = "starting"
@@ -81,10 +85,14 @@ class Supervisor:
             child.reader = None
 
     def _heartbeat_age(self, child: Child) -> Optional[float]:
-        """Seconds since the child's ring heartbeat, None while it has no ring of its own yet."""
-        info = paths.read_json(paths.info_path(self.config.name, child.camera))
+        """Seconds since the child's heartbeat (a camera's in its ring, the board's in its info file),
+        None while it has not come up yet."""
+        board = child.camera == BOARD
+        info = paths.read_json(paths.board_info_path(self.config.name) if board else paths.info_path(self.config.name, child.camera))
         if info is None or child.proc is None or info.get("pid") != child.proc.pid:
             return None
+        if board:
+            return (monotonic_ns() - int(info.get("heartbeat_ns", 0))) / 1e9
         if child.reader is None:
             try:
                 child.reader = RingReader.attach(info["ring"])

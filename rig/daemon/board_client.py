@@ -1,0 +1,217 @@
+"""A session's view of a trigger board owned by its daemon (rig.daemon.board_daemon), with the part of
+`sync.board.TriggerBoard`'s interface a `RigSession` uses: connect, set_rate, start, stop, wait_done,
+warm_up, subscribe, connected, clock, report, close.
+
+Pulses and events arrive as datagrams; `clock` mirrors the owner's clock model (the fit that came with
+the last pulse or clock message), so board times map to host times as the owner maps them. When the
+owner's messages stop for `LOST_S` the board is reported disconnected; when a (restarted) owner
+speaks again, connected again (`reconnect`), and the session restarts its train as it does for a
+board plugged back in.
+"""
+from __future__ import annotations
+
+import http.client
+import json
+import socket
+import threading
+import time
+from typing import Any, Callable, Optional
+from urllib.parse import urlencode, urlsplit
+
+from rig.daemon import paths
+from sync.board import BoardEvent, Pulse
+from sync.clock import ClockFit
+from sync.errors import TriggerBoardError
+from sync.frames import monotonic_ns
+
+LOST_S = 1.5
+RENEW_S = 1.0
+
+
+def board_daemon(rig: str) -> Optional[dict[str, Any]]:
+    """The info of the live trigger board daemon of this rig on this host, or None."""
+    info = paths.read_json(paths.board_info_path(rig))
+    return info if info is not None and paths.pid_alive(info.get("pid")) else None
+
+
+class MirrorClock:
+    """The owner's clock fit, as last received."""
+
+    def __init__(self) -> None:
+        self.fit: Optional[ClockFit] = None
+        self._age = 0.0
+
+    def update(self, d: Optional[dict]) -> None:
+        if d:
+            self._age = float(d.pop("age_s", 0.0))
+            self.fit = ClockFit(**d)
+
+    @property
+    def ready(self) -> bool:
+        return self.fit is not None
+
+    def board_to_host_ns(self, board_us: float) -> int:
+        if self.fit is None:
+            raise RuntimeError("clock model has no samples yet")
+        return self.fit.board_to_host_ns(board_us)
+
+    def host_to_board_us(self, host_ns: int) -> float:
+        if self.fit is None:
+            raise RuntimeError("clock model has no samples yet")
+        return self.fit.host_to_board_us(host_ns)
+
+    def age_s(self) -> float:
+        return self._age
+
+    def stats(self) -> dict:
+        f = self.fit
+        return {"fit_samples": f.samples if f else 0, "span_s": f.span_us / 1e6 if f else 0.0, "drift_ppm": f.drift_ppm if f else None,
+                "fit_residual_p99_us": f.residual_p99_us if f else None, "margin_us": f.margin_us if f else None, "relayed": True}
+
+
+class RemoteBoard:
+    def __init__(self, rig: str, info: dict[str, Any]):
+        self.rig = rig
+        self.info = info
+        self.uri = f"{info.get('uri')} (through its daemon, pid {info.get('pid')})"
+        self.clock = MirrorClock()
+        self.rate_hz: Optional[float] = None
+        self.pulse_width_us: Optional[float] = None
+        self._pulse_listeners: list[Callable[[Pulse], None]] = []
+        self._event_listeners: list[Callable[[BoardEvent], None]] = []
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind(("127.0.0.1", 0))
+        self._sock.settimeout(0.1)
+        self._connected = threading.Event()
+        self._closed = threading.Event()
+        self._done_cv = threading.Condition()
+        self._done: Optional[int] = None
+        self._last_message = 0.0
+        self._ever = False
+        self._thread: Optional[threading.Thread] = None
+
+    # --- control -------------------------------------------------------------------------------------
+    def _post(self, path: str, **query) -> None:
+        parts = urlsplit(self.info["api"])
+        conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=5)
+        try:
+            conn.request("POST", f"{path}?{urlencode(query)}" if query else path)
+            resp = conn.getresponse()
+            body = resp.read()
+        except (OSError, http.client.HTTPException) as exc:
+            raise TriggerBoardError(f"trigger board daemon {self.info['api']}: {exc}") from None
+        finally:
+            conn.close()
+        if resp.status != 200:
+            raise TriggerBoardError(f"trigger board daemon: {json.loads(body or b'{}').get('error', resp.status)}")
+
+    def connect(self, timeout: float = 3.0) -> None:
+        self._thread = threading.Thread(target=self._listen, name="rig-board-client", daemon=True)
+        self._thread.start()
+        if not self._connected.wait(timeout):
+            raise TriggerBoardError(f"the trigger board daemon of rig '{self.rig}' (pid {self.info.get('pid')}) does not answer")
+
+    def set_rate(self, rate_hz: float, pulse_width_us: float) -> None:
+        self._post("/rate", rate_hz=rate_hz, pulse_width_us=pulse_width_us)
+        self.rate_hz, self.pulse_width_us = rate_hz, pulse_width_us
+
+    def start(self, count: int = 0) -> None:
+        with self._done_cv:
+            self._done = None
+        self._post("/start", pulses=int(count))
+
+    def stop(self) -> None:
+        self._post("/stop")
+
+    def wait_done(self, timeout: float) -> Optional[int]:
+        with self._done_cv:
+            self._done_cv.wait_for(lambda: self._done is not None, timeout)
+            return self._done
+
+    def warm_up(self, seconds: float = 3.0, interval: float = 0.01) -> None:
+        """The owner keeps its clock model warm: wait (at most `seconds`) for its fit."""
+        end = time.monotonic() + seconds
+        while not self.clock.ready and time.monotonic() < end:
+            time.sleep(0.02)
+        if not self.clock.ready:
+            raise TriggerBoardError("the trigger board daemon has no clock model yet")
+
+    @property
+    def connected(self) -> bool:
+        return self._connected.is_set()
+
+    def subscribe(self, on_pulse=None, on_event=None) -> None:
+        if on_pulse is not None:
+            self._pulse_listeners.append(on_pulse)
+        if on_event is not None:
+            self._event_listeners.append(on_event)
+
+    def report(self) -> dict:
+        return {"connected": self.connected, "through_daemon": self.info.get("api"), "clock": self.clock.stats()}
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        try:
+            self._sock.sendto(b"UNSUB", ("127.0.0.1", int(self.info["event_port"])))
+        except OSError:
+            pass
+        if self._thread is not None:
+            self._thread.join(2)
+        self._sock.close()
+
+    # --- messages ------------------------------------------------------------------------------------
+    def _emit(self, event: BoardEvent) -> None:
+        for fn in list(self._event_listeners):
+            fn(event)
+
+    def _listen(self) -> None:
+        renew = 0.0
+        while not self._closed.is_set():
+            now = time.monotonic()
+            if now >= renew:
+                self._subscribe()
+                renew = now + RENEW_S
+            if self._connected.is_set() and now - self._last_message > LOST_S:
+                self._connected.clear()
+                self._emit(BoardEvent("disconnected", f"trigger board daemon of rig '{self.rig}' stopped answering", monotonic_ns()))
+            try:
+                data, _ = self._sock.recvfrom(65536)
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            try:
+                msg = json.loads(data)
+            except ValueError:
+                continue
+            self._last_message = time.monotonic()
+            self.clock.update(msg.get("clock"))
+            if not self._connected.is_set() and self.clock.ready:
+                self._connected.set()
+                if self._ever:
+                    self._emit(BoardEvent("connected", f"trigger board daemon of rig '{self.rig}' answers again", monotonic_ns(),
+                                          {"reconnect": True}))
+                self._ever = True
+            if msg.get("t") == "pulse":
+                pulse = Pulse(int(msg["index"]), int(msg["board_us"]), int(msg["received_ns"]), bool(msg["late"]))
+                for fn in list(self._pulse_listeners):
+                    fn(pulse)
+            elif msg.get("t") == "event":
+                event = BoardEvent(str(msg["kind"]), str(msg["detail"]), int(msg["time_ns"]), dict(msg.get("values") or {}))
+                if event.kind == "done":
+                    with self._done_cv:
+                        self._done = int(event.values.get("pulses", 0))
+                        self._done_cv.notify_all()
+                self._emit(event)  # the owner's board too may go and come back
+
+    def _subscribe(self) -> None:
+        """Subscribe (and renew): to the daemon now in the info file (a restarted one has a new port)."""
+        info = board_daemon(self.rig)
+        if info is not None:
+            self.info = info
+        try:
+            self._sock.sendto(b"SUB", ("127.0.0.1", int(self.info["event_port"])))
+        except OSError:
+            pass
