@@ -35,6 +35,7 @@ def register(sub) -> None:
     u.add_argument("--status", action="store_true", help="print the running supervisor's state and exit")
     u.add_argument("--json", action="store_true", help="with --status: one JSON object")
     u.add_argument("--no-advertise", action="store_true", help="the daemons do not advertise on mDNS")
+    u.add_argument("--interface", action="append", metavar="ADDR", help="the daemons advertise on this interface address only (repeatable)")
     u.set_defaults(func=cmd_up)
 
     dn = sub.add_parser("down", help="stop the rig's supervisor and its daemons")
@@ -118,7 +119,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         return 0
     if running:
         raise DeviceError(f"rig '{cfg.name}': a supervisor already runs (pid {state['pid']}); `rig down -c {args.config}` stops it")
-    sup = Supervisor(cfg, args.config, stale_s=args.stale, daemon_args=("--no-advertise",) if args.no_advertise else (),
+    daemon_args = ["--no-advertise"] if args.no_advertise else [a for addr in args.interface or () for a in ("--interface", addr)]
+    sup = Supervisor(cfg, args.config, stale_s=args.stale, daemon_args=tuple(daemon_args),
                      say=lambda line: print(f"rig up: {line}", flush=True))
     _stop_on_signals(sup.stop_event)
     board = " and its trigger board's" if cfg.trigger is not None else ""

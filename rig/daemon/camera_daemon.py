@@ -9,7 +9,10 @@ the daemon itself stays up. Beside the ring:
 - a control API (HTTP JSON, rig.daemon.api) on loopback, or on another address with a token;
 - a trigger input: a UDP socket on loopback that takes a software trigger (b"S") or an emulated
   hardware edge (b"H" + pulse index + host time, little-endian int64s) in one datagram, so that a
-  session's (emulated) trigger board reaches a camera in another process within a millisecond;
+  session's (emulated) trigger board reaches a camera in another process within a millisecond; the
+  same socket takes readers' doorbell subscriptions (b"W", renewed every second, lapsing after 5 s):
+  after each frame it writes, the daemon sends each subscriber one byte, so a reader blocked on its
+  socket wakes within tens of microseconds instead of polling the ring;
 - its info file (rig.daemon.paths), written once all of that serves, removed at a clean exit;
 - an mDNS advertisement (`_rigcam._tcp.local.`, rig.daemon.discovery), unless disabled;
 - sd_notify READY once the camera acquires and WATCHDOG from the acquisition loop (rig.daemon.notify),
@@ -41,6 +44,7 @@ from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceErr
 from sync.frames import monotonic_ns
 
 TRIGGER = struct.Struct("<cqq")  # kind (b"S" | b"H"), pulse index, host time ns
+WATCH_S = 5.0  # a doorbell subscription lapses unless renewed
 # A reader may fall behind (a busy host: a session's threads wait for the GIL, its disk for writes): the
 # ring keeps about a second of frames, within 64 MB, and at least 8.
 RING_SECONDS = 1.0
@@ -87,6 +91,7 @@ class CameraDaemon:
         self.last_frame_ns = 0
         self._recent: collections.deque = collections.deque(maxlen=64)  # host times of the last frames: fps
         self._trigger_sock: Optional[socket.socket] = None
+        self._watchers: dict[tuple, float] = {}  # doorbell subscribers -> lapse time (monotonic s)
         self.api = None
         self._advert = None
 
@@ -277,6 +282,20 @@ class CameraDaemon:
                 continue
             self.last_frame_ns = monotonic_ns()
             self._recent.append(self.last_frame_ns)
+            self._ring_doorbells()
+
+    def _ring_doorbells(self) -> None:
+        if not self._watchers:
+            return
+        now = time.monotonic()
+        for address, until in list(self._watchers.items()):
+            if until < now:
+                self._watchers.pop(address, None)
+                continue
+            try:
+                self._trigger_sock.sendto(b"F", address)
+            except OSError:
+                self._watchers.pop(address, None)
 
     @staticmethod
     def _reconnect(cam) -> bool:
@@ -289,11 +308,14 @@ class CameraDaemon:
         sock = self._trigger_sock
         while not self.stop_event.is_set() and sock is not None:
             try:
-                data, _ = sock.recvfrom(64)
+                data, address = sock.recvfrom(64)
             except socket.timeout:
                 continue
             except OSError:
                 return
+            if data == b"W":  # a reader's doorbell subscription
+                self._watchers[address] = time.monotonic() + WATCH_S
+                continue
             if len(data) != TRIGGER.size:
                 self.counters["bad_trigger_datagrams"] += 1
                 continue

@@ -111,39 +111,39 @@ class LocalDaemonCamera(_DaemonCamera):
         super().__init__(settings, info, "127.0.0.1")
         self.reader: Optional[RingReader] = None
         self._next = 0
-        self._period: Optional[float] = None  # smoothed seconds between frames
-        self._last_arrival: Optional[float] = None
+        self._bell = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # the daemon's doorbell rings here
+        self._bell.bind(("127.0.0.1", 0))
+        self._renew_at = 0.0  # when to renew the doorbell subscription
 
-    # Frames come at a steady rate: the reader sleeps until 1.5 ms before the next is due, then looks
-    # without pause until 0.5 ms after (its own wake-up is what it waited for: about 1.5 % of a core at
-    # 30 Hz), then every 0.05 ms for 4 ms more, then as RingReader.wait does (polls backing off to 2 ms,
-    # which alone take up to 2 ms to notice a frame).
-    EARLY_S = 0.0015
-    FINE_S = 0.004
-    SPIN_S = 0.0005
-
-    def _arrived(self, now: float) -> None:
-        if self._last_arrival is not None:
-            gap = now - self._last_arrival
-            self._period = gap if self._period is None else 0.9 * self._period + 0.1 * min(gap, 4 * self._period)
-        self._last_arrival = now
+    # The daemon rings a doorbell (one datagram to this camera's socket) after each frame it writes:
+    # the reader blocks on it and wakes within tens of microseconds, without polling the ring. The
+    # ring's write sequence stays the truth: a lost or late datagram costs at most the next wait.
+    RENEW_S = 1.0
 
     def _wait(self, reader: RingReader, k: int, timeout: float) -> bool:
-        if reader.write_seq > k:
-            return True
-        now = time.monotonic()
-        end = now + timeout
-        if self._period is not None and self._last_arrival is not None:
-            due = self._last_arrival + self._period
-            if due - self.EARLY_S > now:
-                time.sleep(min(due - self.EARLY_S, end) - now)
-            fine_end = min(end, max(due, time.monotonic()) + self.FINE_S)
-            while (t := time.monotonic()) < fine_end:
-                if reader.write_seq > k:
-                    return True
-                if t > due + self.SPIN_S:  # around the due time it spins: a sleep's wake-up costs more than 50 us
-                    time.sleep(0.00005)
-        return reader.wait(k, max(0.0, end - time.monotonic()))
+        end = time.monotonic() + timeout
+        while True:
+            if reader.write_seq > k:
+                return True
+            now = time.monotonic()
+            if now >= end:
+                return False
+            if now >= self._renew_at:
+                port = self.info.get("trigger_port")
+                try:
+                    self._bell.sendto(b"W", ("127.0.0.1", int(port)))
+                except (OSError, TypeError, ValueError):
+                    pass
+                self._renew_at = now + self.RENEW_S
+            self._bell.settimeout(min(end - now, 0.05))
+            try:
+                while True:  # drain: several rings may be queued
+                    self._bell.recv(16)
+                    self._bell.setblocking(False)
+            except (BlockingIOError, socket.timeout):
+                pass
+            except OSError:
+                time.sleep(0.001)
 
     def _attach(self) -> None:
         reader = RingReader.attach(self.info["ring"])
@@ -177,7 +177,6 @@ class LocalDaemonCamera(_DaemonCamera):
                 except FrameNotReady:
                     continue
                 self._next += 1
-                self._arrived(time.monotonic())
                 return self._renumber(frame)
             if not reader.writer_alive(STALE_S):
                 raise CameraDisconnected(f"{self.name}: its daemon (pid {self.info.get('pid')}) stopped serving {self.info['ring']}")
@@ -205,11 +204,13 @@ class LocalDaemonCamera(_DaemonCamera):
         if self.reader is not None:
             self.reader.close()
         self.info, self.reader, self._next = info, reader, reader.latest()
+        self._renew_at = 0.0  # subscribe to the new daemon's doorbell
         self._restarted()
         return True
 
     def close(self) -> None:
         super().close()
+        self._bell.close()
         if self.reader is not None:
             self.reader.close()
             self.reader = None

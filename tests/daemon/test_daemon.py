@@ -295,3 +295,25 @@ def test_the_trigger_board_daemon_drives_takes_and_a_killed_one_comes_back(tmp_p
         assert "trigger board" in err2
     finally:
         print(up.stop())
+
+
+def test_rig_up_daemons_are_found_by_discover_network_within_3_s(tmp_path):
+    config = rig_file(tmp_path, n=2, trigger="free")
+    root = tmp_path / "shm"
+    proc = subprocess.Popen([sys.executable, "-m", "rig", "up", "-c", str(config), "--interface", "127.0.0.1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env_for(root))
+    try:
+        wait_running(root, "sim-2cam", 2)
+        t0 = time.monotonic()
+        found = rig("discover", "--network", "--json", "--interface", "127.0.0.1", "--rig", "sim-2cam", env=env_for(root))
+        spent = time.monotonic() - t0  # the whole command, Python's start included
+        assert found.returncode == 0, found.stderr
+        daemons = json.loads(found.stdout)["daemons"]
+        assert sorted(d["camera"] for d in daemons) == ["left", "right"], daemons
+        for d in daemons:
+            info = json.loads((root / "sim-2cam" / f"{d['camera']}.json").read_text())
+            assert d["api_url"] == info["api"] and d["shm"] == info["ring"] and d["pid"] == info["pid"] and d["uri"] == f"sim://{d['camera']}"
+        assert spent < 3.0, spent
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
