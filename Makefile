@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 APT_PACKAGES := python3 python3-venv python3-dev g++ make pkg-config \
 	aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev \
-	chromium chromium-driver
+	chromium chromium-driver systemd
 
 .PHONY: demo test install system-deps bench clean
 

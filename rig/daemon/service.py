@@ -69,20 +69,24 @@ def _text(value: str) -> str:
     return re.sub(r"[\x00-\x1f\x7f]", " ", value).replace("%", "%%").strip()
 
 
-def exec_word(word: str) -> str:
-    """One argument of ExecStart=: '%' and '$' escaped (specifiers, environment variables); quoted when
-    it has whitespace, quotes or backslashes (systemd splits the line itself, with C-style escapes)."""
+def exec_word(word: str, *, command: bool = False) -> str:
+    """One word of ExecStart=: '%' escaped (specifiers), '$' too in an argument (environment variables
+    are substituted in arguments, never in the command itself: there "$$" would stay two characters);
+    quoted when it has whitespace, quotes or backslashes (systemd splits the line itself, with C-style
+    escapes)."""
     if any(ch in word for ch in "\n\r\0"):
         raise ConfigError(f"{word!r}: a path with a line break cannot go into a unit file")
-    word = word.replace("%", "%%").replace("$", "$$")
+    word = word.replace("%", "%%")
+    if not command:
+        word = word.replace("$", "$$")
     if word and not re.search(r"[\s\"'\\;]", word):
         return word
     return '"' + word.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def _seconds(value: float) -> str:
-    text = f"{value:.6f}".rstrip("0").rstrip(".")
-    return text
+    """A time span as systemd reads it, in seconds (microsecond resolution): 5.0 -> "5", 2.5 -> "2.5"."""
+    return f"{value:.6f}".rstrip("0").rstrip(".")
 
 
 def check_watchdog(watchdog_s: float) -> float:
@@ -116,7 +120,7 @@ def _service_body(*, description: str, exec_args: list[str], python: str, config
     if user or group:
         account += ("# the devices the udev rules (99-rig.rules) give to these groups: trigger board, USB3 Vision, UVC\n"
                     f"SupplementaryGroups={' '.join(DEVICE_GROUPS)}\n")
-    exec_start = " ".join([exec_word(python), "-m", "rig", "daemon", *exec_args, "-c", exec_word(config_path)])
+    exec_start = " ".join([exec_word(python, command=True), "-m", "rig", "daemon", *exec_args, "-c", exec_word(config_path)])
     return f"""[Unit]
 Description={description}
 # stopping or restarting rig.target stops or restarts this daemon too
@@ -201,6 +205,7 @@ def udev_rules() -> str:
     return f"""# 99-rig.rules: stable device names for the rig (written by `rig service install`; docs/services.md).
 # Reload with `udevadm control --reload`, then replug or `udevadm trigger`.
 
+# nothing to name or grant when a device goes away
 ACTION=="remove", GOTO="rig_end"
 
 # The trigger board (sync/firmware/trigger_board): a Raspberry Pi Pico (RP2040) with the arduino-pico
@@ -229,6 +234,7 @@ SUBSYSTEM=="video4linux", ENV{{ID_USB_DRIVER}}=="uvcvideo", ATTR{{index}}=="0", 
 # 172.2X.1YZ.51 (Open GoPro HTTP API). Not the whole serial: an interface name has at most 15 characters.
 SUBSYSTEM=="net", ACTION=="add", ATTRS{{idVendor}}=="{GOPRO_USB_VENDOR}", ENV{{ID_SERIAL_SHORT}}=="???*", PROGRAM="/bin/sh -c 'echo rig-gopro-$${{0#$${{0%%???}}}}' $env{{ID_SERIAL_SHORT}}", NAME="%c"
 
+# the end of the rig's rules
 LABEL="rig_end"
 """
 
