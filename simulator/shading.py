@@ -44,17 +44,21 @@ class Shader:
         R = self.R
         return [float(R[0, i]) * x + float(R[1, i]) * y + float(R[2, i]) for i in range(3)]
 
-    def room_intersect(self, x, y):
-        ts = []
+    @staticmethod
+    def _exit_t(D, lo, hi, c):
+        """Ray parameter where the ray leaves the box through the walls of one axis: +inf for a ray
+        parallel to them (D exactly 0), which the division alone would make -inf (then the nearest)."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            for D, lo, hi, c in zip(self._room_dirs(x, y), self.lo, self.hi, self.C):
-                ts.append(((lo - float(c)) + (hi - lo) * (D > 0)) / D)
+            t = ((lo - float(c)) + (hi - lo) * (D > 0)) / D
+        return np.where(D == 0, np.inf, t)
+
+    def room_intersect(self, x, y):
+        ts = [self._exit_t(D, lo, hi, c) for D, lo, hi, c in zip(self._room_dirs(x, y), self.lo, self.hi, self.C)]
         return np.minimum(np.minimum(ts[0], ts[1]), ts[2])
 
     def room_shade(self, x, y, t, want_normals=False, shadows=True):
         Dx, Dy, Dz = self._room_dirs(x, y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ts = [((lo - float(c)) + (hi - lo) * (D > 0)) / D for D, lo, hi, c in zip((Dx, Dy, Dz), self.lo, self.hi, self.C)]
+        ts = [self._exit_t(D, lo, hi, c) for D, lo, hi, c in zip((Dx, Dy, Dz), self.lo, self.hi, self.C)]
         on_x = (ts[0] <= ts[1]) & (ts[0] <= ts[2])
         on_y = ~on_x & (ts[1] <= ts[2])
         on_z = ~(on_x | on_y)
