@@ -35,6 +35,7 @@ CAMERA_OPTIONS: dict[str, tuple] = {
     "seed": (int, 0, 2**31 - 1, 0, "random seed of this sensor's noise, drops and jitter"),
     "disconnect_after_s": (float, 0.0, 1e9, 0.0, "the camera vanishes this long after it starts (0 = never)"),
     "reconnect_after_s": (float, 0.0, 1e9, 0.0, "a vanished camera comes back this long after it vanished (0 = never)"),
+    "open_s": (float, 0.0, 600.0, 0.0, "seconds every open (and reconnect) of the camera takes, as a GigE camera's can"),
 }
 
 TRIGGER_OPTIONS: dict[str, tuple] = {

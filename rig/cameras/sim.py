@@ -101,6 +101,7 @@ class SimCamera(Camera):
         self._vanished_once = False
         self._thread: Optional[threading.Thread] = None
         self._frame_counter = 0
+        self._opened_slowly = False
         self._start_ns = 0
         self._last_exposure_end_ns = 0
         self._session = getattr(settings, "calibration_session", None)
@@ -137,6 +138,9 @@ class SimCamera(Camera):
         rendering is not. The loop cache makes a repeated start quick; a first one shows a progress
         bar on a terminal. `start` does it too; a rig prepares all its cameras first, so that they
         then start together."""
+        if self.opts["open_s"] > 0 and not self._opened_slowly:
+            self._opened_slowly = True  # an emulated device that takes its time to open, once per open
+            time.sleep(self.opts["open_s"])
         if self.sensor is not None and getattr(self.sensor, "loop_frames", 0):
             with ProgressBar(f"{self.name}: pre-rendering the simulated scene") as bar:
                 self.sensor.prerender(self.exposure_s, progress=bar.update)
@@ -185,6 +189,7 @@ class SimCamera(Camera):
             self._requests.clear()
             self._unplugged = False
         self._vanished_once = True  # it does not vanish again on its own
+        self._opened_slowly = False  # opening it again takes open_s again
         self.start()
         return True
 

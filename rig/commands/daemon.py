@@ -9,6 +9,8 @@ import sys
 import threading
 from pathlib import Path
 
+from rig.daemon.supervisor import STALE_S
+
 
 def register(sub) -> None:
     d = sub.add_parser("daemon", help="run one camera of the rig as a daemon (frames in shared memory, a control API)",
@@ -31,7 +33,7 @@ def register(sub) -> None:
                                    "heartbeat stops, with back-off; prints its events. With --status, prints the state of the "
                                    "rig's running supervisor instead.")
     u.add_argument("-c", "--config", type=Path, required=True, help="rig configuration (TOML)")
-    u.add_argument("--stale", type=float, default=2.0, help="seconds without a heartbeat before a daemon is restarted (default 2)")
+    u.add_argument("--stale", type=float, default=STALE_S, help=f"seconds without a heartbeat before a camera daemon is restarted (default {STALE_S:g})")
     u.add_argument("--status", action="store_true", help="print the running supervisor's state and exit")
     u.add_argument("--json", action="store_true", help="with --status: one JSON object")
     u.add_argument("--no-advertise", action="store_true", help="the daemons do not advertise on mDNS")

@@ -19,11 +19,14 @@ the daemon itself stays up. Beside the ring:
   so systemd restarts a daemon whose loop hangs.
 
 The ring's heartbeat is renewed by the same loop: a supervisor (`rig up`) that sees it stop restarts
-the daemon even when its process is still there.
+the daemon even when its process is still there. Work that blocks the loop for longer on purpose
+(opening the camera again with new settings, asking a lost camera whether it is back) keeps the
+heartbeat going from a thread of its own for at most BUSY_LIMIT_S: longer than that is a hang too.
 """
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import json
 import os
@@ -50,6 +53,8 @@ WATCH_S = 5.0  # a doorbell subscription lapses unless renewed
 RING_SECONDS = 1.0
 RING_MAX_BYTES = 64 << 20
 MIN_SLOTS = 8
+HEARTBEAT_S = 0.2  # the heartbeat's period while slow work blocks the loop
+BUSY_LIMIT_S = 60.0  # slow work that takes longer than this is treated as a hang (the heartbeat stops)
 
 
 def default_slots(cfg) -> int:
@@ -140,7 +145,7 @@ class CameraDaemon:
             return self.settings()
         cfg = dataclasses.replace(self.cfg, **new)
         cfg.rig = self.cfg.rig
-        with self._lock:
+        with self._busy(), self._lock:
             was = self.acquiring.is_set()
             self._close_camera()
             self.cfg = cfg
@@ -149,7 +154,7 @@ class CameraDaemon:
         return self.settings()
 
     def start_acquisition(self) -> None:
-        with self._lock:
+        with self._busy(), self._lock:
             if not self.acquiring.is_set():
                 self.camera.start()
                 self.acquiring.set()
@@ -157,7 +162,7 @@ class CameraDaemon:
                 self.event("started", "acquisition started")
 
     def stop_acquisition(self) -> None:
-        with self._lock:
+        with self._busy(), self._lock:
             if self.acquiring.is_set():
                 self.acquiring.clear()
                 self.camera.stop()
@@ -177,6 +182,26 @@ class CameraDaemon:
         return self._trigger_sock.getsockname()[1] if self._trigger_sock else None
 
     # --- lifecycle ---------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def _busy(self):
+        """Keeps the ring's heartbeat fresh while slow work blocks the acquisition loop (at most
+        BUSY_LIMIT_S), so a supervisor watching it tells slow work from a hang."""
+        done = threading.Event()
+
+        def beat() -> None:
+            end = time.monotonic() + BUSY_LIMIT_S
+            while not done.wait(HEARTBEAT_S) and time.monotonic() < end:
+                if self.ring is not None:
+                    self.ring.heartbeat()
+
+        beater = threading.Thread(target=beat, name="rig-daemon-busy", daemon=True)
+        beater.start()
+        try:
+            yield
+        finally:
+            done.set()
+            beater.join()
+
     def _open_camera(self, start: bool = True) -> None:
         self.camera = open_camera(self.cfg)
         self.camera.prepare()
@@ -256,7 +281,9 @@ class CameraDaemon:
                 if self.state == "lost":
                     if time.monotonic() >= next_reconnect:
                         next_reconnect = time.monotonic() + RECONNECT_EVERY_S
-                        if self._reconnect(cam):
+                        with self._busy():
+                            back = self._reconnect(cam)
+                        if back:
                             self.state = "running"
                             self.event("camera_back", f"camera {self.cfg.name} is back")
                             self._publish()

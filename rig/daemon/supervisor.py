@@ -4,7 +4,7 @@ The supervisor starts `rig daemon NAME -c RIG.toml` for every camera of the conf
 sharing one simulated scene clock, $RIG_SIM_EPOCH_NS), then watches them ten times a second:
 
 - a daemon that exited (crashed, was killed) is started again;
-- a daemon whose ring heartbeat is older than `stale_s` (its acquisition loop hangs, or it never came
+- a daemon whose ring heartbeat is older than `stale_s` (1 s by default; its acquisition loop hangs, or it never came
   up within `start_timeout_s`) is killed (SIGKILL) and started again;
 - restarts back off (0.2 s, doubled per quick failure, at most 5 s; a daemon up for 30 s is healthy
   again), are counted per camera and reported as events (printed, and kept in the state file).
@@ -37,6 +37,11 @@ BOARD = "@board"  # the trigger board daemon's entry among the children
 BACKOFF_START_S = 0.2
 BACKOFF_MAX_S = 5.0
 HEALTHY_AFTER_S = 30.0
+# A camera daemon renews its heartbeat at least every 0.2 s (rig.daemon.camera_daemon): 1 s without one
+# is a hang, so a hung daemon runs again within 2 s. The board daemon beats every 0.5 s (its clock
+# datagrams' period, rig.daemon.board_daemon.CLOCK_EVERY_S) by rewriting its info file: 2 s for it.
+STALE_S = 1.0
+BOARD_STALE_S = 2.0
 
 
 @dataclass
@@ -53,7 +58,7 @@ class Child:
 
 
 class Supervisor:
-    def __init__(self, config: RigConfig, config_path: Path, *, stale_s: float = 2.0, start_timeout_s: float = 60.0,
+    def __init__(self, config: RigConfig, config_path: Path, *, stale_s: float = STALE_S, start_timeout_s: float = 60.0,
                  daemon_args: tuple[str, ...] = (), say: Callable[[str], None] = print):
         self.config = config
         self.config_path = Path(config_path).absolute()
@@ -66,12 +71,14 @@ class Supervisor:
             self.children[BOARD] = Child(BOARD)
         self.events: list[dict] = []
         self.stop_event = threading.Event()
+        self._changed = False
         self.env = dict(os.environ, RIG_SIM_EPOCH_NS=os.environ.get("RIG_SIM_EPOCH_NS") or str(monotonic_ns()))
 
     def event(self, camera: str, kind: str, detail: str) -> None:
         self.events.append({"camera": camera, "kind": kind, "detail": detail, "time_ns": monotonic_ns()})
         del self.events[:-200]
         self.children[camera].last_event = detail
+        self._changed = True
         self.say(f"{camera}: {detail}")
 
     def _spawn(self, child: Child) -> None:
@@ -80,6 +87,7 @@ class Supervisor:
         child.proc = subprocess.Popen(cmd, env=self.env, stdin=subprocess.DEVNULL, start_new_session=True)
         child.started = time.monotonic()
         child.state = "starting"
+        self._changed = True  # the state file says so at once
         if child.reader is not None:
             child.reader.close()
             child.reader = None
@@ -113,7 +121,7 @@ class Supervisor:
                 if now - child.started > self.start_timeout_s:
                     self._restart(child, f"did not come up within {self.start_timeout_s:g} s")
                 return
-            if age > self.stale_s:
+            if age > (max(self.stale_s, BOARD_STALE_S) if child.camera == BOARD else self.stale_s):
                 self._restart(child, f"heartbeat stopped ({age:.1f} s old): killed")
                 return
             if child.state != "running":
@@ -152,8 +160,9 @@ class Supervisor:
             while not self.stop_event.is_set():
                 for child in self.children.values():
                     self._check(child)
-                if time.monotonic() - last_state > 1.0:
+                if self._changed or time.monotonic() - last_state > 1.0:
                     self.write_state()
+                    self._changed = False
                     last_state = time.monotonic()
                 self.stop_event.wait(0.1)
         finally:
