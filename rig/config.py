@@ -28,6 +28,7 @@ class CameraConfig:
     trigger: str = "free"
     exposure_us: Optional[float] = None
     gain: Optional[float] = None
+    latency_ms: Optional[float] = None  # exposure start to host arrival (free-running cameras' grouping)
     sim: dict[str, Any] = field(default_factory=dict)  # sensor-model options of sim:// cameras
     rig = None  # the RigConfig this camera belongs to (set when the config is parsed)
 
@@ -148,6 +149,7 @@ CAMERA_KEYS = {
     "trigger": str,
     "exposure_us": float,
     "gain": float,
+    "latency_ms": float,
     "sim": dict,
 }
 TRIGGER_KEYS = {"uri": str, "rate_hz": float, "pulse_width_us": float, "sim": dict}
@@ -258,6 +260,8 @@ def _parse_cameras(cams_raw, given: bool, problems: _Problems) -> tuple[list[Cam
             problems.add(f"{where}.fps: must be between 0 and 10000, got {vals['fps']}")
         if "exposure_us" in vals and vals["exposure_us"] <= 0:
             problems.add(f"{where}.exposure_us: must be positive, got {vals['exposure_us']}")
+        if "latency_ms" in vals and not 0 <= vals["latency_ms"] <= 10000:
+            problems.add(f"{where}.latency_ms: must be between 0 and 10000, got {vals['latency_ms']}")
         if vals.get("sim") and scheme == "sim":
             _check_sim_options(f"{where}.sim", vals["sim"], "camera", problems)
         elif vals.get("sim") and scheme is not None:

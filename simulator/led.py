@@ -66,15 +66,17 @@ class FlashLed:
         return total
 
     # --- what a camera sees -----------------------------------------------------------------------
-    def footprint(self, camera: CameraModel, depth: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
-        """Coverage (0..1 per pixel, HxW) of the LED's disc in this camera; None when out of view or
-        hidden (the scene's depth at the LED's pixel is nearer than the LED)."""
+    def footprint(self, camera: CameraModel, depth: Optional[np.ndarray] = None,
+                  radius_m: Optional[float] = None) -> Optional[np.ndarray]:
+        """Coverage (0..1 per pixel, HxW) of the LED's disc (or a disc of `radius_m` around it: its
+        housing) in this camera; None when out of view or hidden (the scene's depth at the LED's
+        pixel is nearer than the LED)."""
         uv, z = camera.project(self.position.reshape(1, 3))
         uv, z = uv[0], float(z[0])
         if not z > 0.05:
             return None
         fx = float(camera.K[0, 0])
-        r_px = max(0.5, fx * self.radius_m / z)
+        r_px = max(0.5, fx * (self.radius_m if radius_m is None else radius_m) / z)
         H, W = camera.height, camera.width
         u0, u1 = int(np.floor(uv[0] - r_px - 1)), int(np.ceil(uv[0] + r_px + 1))
         v0, v1 = int(np.floor(uv[1] - r_px - 1)), int(np.ceil(uv[1] + r_px + 1))
@@ -83,7 +85,7 @@ class FlashLed:
         if depth is not None:
             ui, vi = int(np.clip(round(uv[0]), 0, W - 1)), int(np.clip(round(uv[1]), 0, H - 1))
             d = float(depth[vi, ui])
-            if 0 < d < z - 2 * self.radius_m:
+            if 0 < d < z - 2 * (self.radius_m if radius_m is None else radius_m):
                 return None  # something stands between the LED and this camera
         cover = np.zeros((H, W), np.float32)
         u0c, u1c, v0c, v1c = max(u0, 0), min(u1, W - 1), max(v0, 0), min(v1, H - 1)

@@ -18,6 +18,7 @@ SCENE_OPTIONS: dict[str, tuple] = {
     "loop_frames": (int, 0, 100000, 0, "pre-render this many frames per camera and replay them (0 = render live)"),
     "loop_fps": (float, 0.1, 1000.0, 30.0, "frame rate of the pre-rendered loop (the loop lasts loop_frames / loop_fps s)"),
     "noise_variants": (int, 0, 64, 4, "loop replay: noise realisations drawn per loop frame at prerender (0 = fresh noise every frame, costs CPU)"),
+    "led": (bool, None, None, False, "the trigger board's flash LED hangs above the stage, seen by every camera"),
 }
 
 CAMERA_OPTIONS: dict[str, tuple] = {

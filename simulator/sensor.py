@@ -100,6 +100,8 @@ class SensorModel:
         self._variants: Optional[list] = None
         self.loop_origin: Optional[str] = None  # "render" or "cache" once the loop is made
         self._lock = threading.RLock()  # prerender draws noise under it
+        self.led = None  # a FlashLed in view (SimRig sets it when the scene has one)
+        self._led_cover: Optional[np.ndarray] = None
 
     @property
     def scene(self):
@@ -181,6 +183,36 @@ class SensorModel:
 
     def expose(self, t_start_s: float, exposure_s: float, rng: np.random.Generator, raw: bool = False) -> np.ndarray:
         """The image of an exposure starting at simulated time t_start_s (RGB uint8 HxWx3)."""
+        image = self._expose_scene(t_start_s, exposure_s, rng, raw)
+        return image if self.led is None or raw else self._with_led(image, t_start_s, exposure_s)
+
+    def _with_led(self, image: np.ndarray, t_start_s: float, exposure_s: float) -> np.ndarray:
+        """The LED in its dark housing drawn over a finished image (replayed loop frames included):
+        the LED adds its disc's coverage times the part of the exposure it was lit (an LED is a step
+        function of time, so a flash that starts mid-exposure lights the frame in proportion). It is
+        drawn over the scene, so nothing passing in front hides it, and the lens does not blur it."""
+        if self._led_cover is None:
+            housing = self.led.footprint(self.camera, radius_m=LED_HOUSING_M)
+            cover = self.led.footprint(self.camera)
+            if housing is None or cover is None:
+                self._led_cover = ()  # out of this camera's view
+            else:
+                rows, cols = np.nonzero(housing)
+                box = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
+                self._led_cover = (box, housing[box][:, :, None], cover[box][:, :, None])
+        if not self._led_cover:
+            return image
+        box, housing, cover = self._led_cover
+        lit = self.led.lit_seconds(t_start_s, t_start_s + exposure_s)
+        # radiance 1.0 is full scale over the nominal exposure: the light collected is level * lit time
+        led = cover * np.float32(self.led.radiance_level * lit / NOMINAL_EXPOSURE_S * self.gain * 255.0)
+        patch = image[box].astype(np.float32)
+        patch = patch * (1 - housing) + np.float32(LED_HOUSING_DN) * housing + led
+        out = image.copy()
+        out[box] = np.clip(patch + 0.5, 0, 255).astype(np.uint8)
+        return out
+
+    def _expose_scene(self, t_start_s: float, exposure_s: float, rng: np.random.Generator, raw: bool) -> np.ndarray:
         if self.loop_frames > 0:
             if self._loop is None:
                 self.prerender(exposure_s)
@@ -290,6 +322,10 @@ class SensorModel:
         return self._loop[i].astype(np.float32) * np.float32(1.0 / LOOP_SCALE)
 
 
+LED_POSITION = (0.0, 2.05, -0.5)  # world metres (y up): where a scene's flash LED hangs
+LED_HOUSING_M, LED_HOUSING_DN = 0.16, 12.0  # its dark housing around it: radius, and how it reads in the image
+
+
 class SimRig:
     """A simulated rig from a rig configuration: one shared scene, the ground-truth calibration of
     its sim:// cameras, and a sensor per camera.
@@ -314,6 +350,12 @@ class SimRig:
         self.calibration = arc_rig([(c.name, c.width, c.height) for c in cams], seed=self.options["seed"])
         self._sensors: dict[str, SensorModel] = {}
         self._antialias = antialias
+        self.led = None
+        if self.options["led"]:
+            from simulator.led import FlashLed
+
+            # On a truss above the back of the stage, near the top of every camera's view.
+            self.led = FlashLed(LED_POSITION, radius_m=0.08, radiance=0.1)  # unsaturated at a 1/30 s shutter
 
     @property
     def scene(self):
@@ -337,6 +379,7 @@ class SimRig:
                 gain_db=float(getattr(cfg, "gain", None) or 0.0),
                 loop_frames=self.options["loop_frames"], loop_fps=self.options["loop_fps"], antialias=self._antialias,
                 noise_variants=self.options["noise_variants"])
+            self._sensors[name].led = self.led
         return self._sensors[name]
 
 

@@ -63,7 +63,8 @@ class FrameGrouper:
     ANCHOR_PATIENCE = 8  # frames it waits for when frame ids and arrival times disagree
 
     def __init__(self, cameras: dict[str, str], rate_hz: float, clock: Optional[BoardClock] = None,
-                 reference: Optional[str] = None, max_wait_s: Optional[float] = None):
+                 reference: Optional[str] = None, max_wait_s: Optional[float] = None,
+                 latency_ns: Optional[dict[str, int]] = None):
         if not cameras:
             raise ValueError("no cameras to group")
         for name, mode in cameras.items():
@@ -74,6 +75,9 @@ class FrameGrouper:
         if clock is None and any(m == HARDWARE for m in cameras.values()):
             raise ValueError("hardware-triggered cameras need the trigger board's clock")
         self.clock = clock
+        # a timed camera's delay from exposure start to host arrival, where it is known (a GoPro's
+        # stream arrives a few hundred ms late); otherwise its exposure time
+        self.latency_ns = {n: int(v) for n, v in (latency_ns or {}).items()}
         self.reference = reference if clock is None else None
         self.rate_mhz = int(round(rate_hz * 1000))
         self.period_ns = 1e12 / self.rate_mhz
@@ -100,6 +104,14 @@ class FrameGrouper:
             if self.clock is not None and self.clock.ready:
                 self.mapped_pulses.append((self.epoch, index, self.clock.board_to_host_ns(board_us)))
             self._retry_pending()
+
+    def pulse_position(self, board_us: float) -> Optional[float]:
+        """Where board time `board_us` falls on the sets' trigger axis, in pulse periods (set
+        `trigger` n is pulse n: 17.25 is a quarter period after it); None before the first pulse."""
+        with self._lock:
+            if not self.timeline.started:
+                return None
+            return self._base + (board_us - self.timeline.start_us) * self.rate_mhz / 1e9
 
     def end_of_train(self, pulses: int) -> None:
         """The board ended the train after `pulses` pulses (DONE)."""
@@ -282,6 +294,9 @@ class FrameGrouper:
 
     # --- timed cameras and the reference camera ---------------------------------------------------
     def _exposure_start_host(self, frame: Frame) -> int:
+        latency = self.latency_ns.get(frame.camera)
+        if latency is not None:
+            return frame.host_ts_ns - latency
         return frame.host_ts_ns - int((frame.exposure_us or 0.0) * 1000)
 
     def _add_reference(self, track: CameraTrack, frame: Frame) -> None:

@@ -303,6 +303,17 @@ class SimCamera(Camera):
             pass  # host did not keep up: this frame is lost, the id gap shows it
 
 
+def scene_led(config) -> Optional[Callable[[bool, int], None]]:
+    """The simulated scene's flash LED as an output of the emulated board (`on`, host ns), or None
+    when the scene has none (`[sim] led = true`). Cameras in this process see it."""
+    if not (getattr(config, "sim", None) or {}).get("led"):
+        return None
+    from simulator.sensor import sim_rig
+
+    led = sim_rig(config).led
+    return lambda on, host_ns: led.set(bool(on), (host_ns - SIM_EPOCH_NS) / 1e9)
+
+
 def emulated_trigger_board(uri: str, options: dict, outputs: list[Callable[[int, int], None]]):
     """The emulated trigger board of a `sim://` trigger URI, opened, its pulse output wired to
     `outputs` (the hardware-trigger inputs of sim cameras); the session talks to it over its port

@@ -1,7 +1,9 @@
 """`rig record`: run the rig in sync and write every FrameSet to a sequence folder."""
 from __future__ import annotations
 
+import json
 import shutil
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,9 +13,43 @@ from rig.config import RigConfig
 from rig.errors import ConfigError
 from rig.progress import StatusLine, rate, rate_text
 from rig.cameras.sim import take_truth
+from rig.storage.layout import FLASHES
 from rig.storage.recorder import SequenceWriter
 
 RECORD_MAX_WAIT_S = 2.0  # how long a set waits for a late frame before it is written without it
+# Cameras that cannot be triggered are aligned to the pulses afterwards by the board's LED flashing
+# in their view (`rig record align`): once soon after the take starts and once near its end, so the
+# alignment also measures each camera's clock rate. A flash lasts a few frame periods: the fit uses
+# both of its edges.
+FLASH_MS = 150
+FLASH_AT_S = 0.6  # after the first set; and this long before the end of a take of known length
+
+
+class _Flasher:
+    """Fires the take's LED flashes from a thread of its own (the board answers within a round
+    trip, the take's writing must not wait for it) and appends each to the take's flashes file."""
+
+    def __init__(self, session, out: Path):
+        self.session, self.path = session, Path(out) / FLASHES
+        self.fired: list[dict] = []
+        self._threads: list[threading.Thread] = []
+
+    def fire(self) -> None:
+        t = threading.Thread(target=self._flash, name="rig-record-flash", daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def _flash(self) -> None:
+        flash = self.session.flash(FLASH_MS)
+        if flash is None or flash.get("trigger") is None:
+            return
+        self.fired.append(flash)
+        with open(self.path, "a") as f:
+            f.write(json.dumps(flash) + "\n")
+
+    def join(self) -> None:
+        for t in self._threads:
+            t.join(timeout=2.0)
 
 
 @dataclass
@@ -29,6 +65,7 @@ class RecordResult:
     cpu_s: float = 0.0
     errors: list[str] = field(default_factory=list)
     stopped_by: str = "done"
+    flashes: int = 0
 
     @property
     def frames_lost(self) -> dict[str, int]:
@@ -48,14 +85,17 @@ class RecordResult:
             "mb_per_s": round(self.bytes / 1e6 / self.seconds, 3) if self.seconds else 0.0,
             "cpu_percent": round(100.0 * self.cpu_s / self.seconds, 1) if self.seconds else 0.0,
             "stopped_by": self.stopped_by,
+            "flashes": self.flashes,
             "errors": self.errors,
         }
 
 
 def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Optional[int] = None,
-           status: Optional[StatusLine] = None, notes: Optional[Callable[[str], None]] = None) -> RecordResult:
+           status: Optional[StatusLine] = None, notes: Optional[Callable[[str], None]] = None,
+           flash: Optional[bool] = None) -> RecordResult:
     """Record to the new folder `out`; `status` shows the take as it goes, `notes` hears the start-up
-    phases (rig/progress.py)."""
+    phases (rig/progress.py). `flash`: flash the board's LED for `rig record align` (default: when
+    the rig has free-running cameras and a trigger board)."""
     from rig.capture.session import RigSession
 
     if seconds is None and sets is None:
@@ -75,6 +115,11 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     t0 = time.monotonic()
     t_first: Optional[float] = None
     session = None
+    flasher = None
+    if flash is None:
+        flash = cfg.trigger is not None and any(c.trigger == "free" for c in cfg.cameras)
+    rate_hz = rate
+    flash_times = []
     try:
         # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
         session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S, on_phase=notes)
@@ -82,6 +127,10 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
             # A board rig records a train of exactly N pulses; otherwise the session is stopped when
             # enough is recorded, and every set still in flight is written before the end.
             session.start(pulses=sets if (sets is not None and session.board is not None) else 0)
+            if flash and session.board is not None:
+                flasher = _Flasher(session, Path(out))
+                length = seconds if seconds is not None else sets / rate_hz
+                flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
             for fs in session.framesets():
                 if not writer.write(fs):
                     result.stopped_by = "storage"
@@ -92,6 +141,9 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                     t_first = time.monotonic()  # the take starts with its first set, after the clock warm-up
                     cpu0 = time.process_time()
                 elapsed = time.monotonic() - t_first
+                while flasher is not None and flash_times and elapsed >= flash_times[0]:
+                    flash_times.pop(0)
+                    flasher.fire()
                 if status is not None:
                     status.update(_status_text(result, writer, session, elapsed, out))
                 done = (sets is not None and result.sets >= sets) or (seconds is not None and elapsed >= seconds)
@@ -99,6 +151,8 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                     session.stop()  # flushes the last sets; the loop writes them and ends
             session_stats = session.camera_stats()
             result.errors.extend(session.errors())
+            if flasher is not None:
+                flasher.join()
     except KeyboardInterrupt:
         result.stopped_by = "interrupt"
         session_stats = {}
@@ -110,6 +164,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
             session_stats = session.camera_stats()
     finally:
         writer.close()
+    result.flashes = len(flasher.fired) if flasher is not None else 0
     result.seconds = time.monotonic() - (t_first if t_first is not None else t0)
     result.cpu_s = time.process_time() - cpu0
     result.sets = writer.sets_written

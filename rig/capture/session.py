@@ -129,13 +129,16 @@ class RigSession:
             self._connect_board()
             return
         if trig.uri.startswith("sim://"):
-            from rig.cameras.sim import emulated_trigger_board  # only sim rigs need the simulator
+            from rig.cameras.sim import emulated_trigger_board, scene_led  # only sim rigs need the simulator
 
             # sim cameras, in this process or in daemons (their trigger input takes the emulated edges)
             not_sim = [c.name for c in hardware if c.scheme not in ("sim", "daemon")]
             if not_sim:
                 raise ConfigError(f"trigger.uri: an emulated board ({trig.uri}) cannot trigger real cameras ({', '.join(not_sim)})")
             self.emulator = emulated_trigger_board(trig.uri, trig.sim, [self._trigger_input(c.name) for c in hardware])
+            led = scene_led(self.config)
+            if led is not None:  # the simulated scene shows the board's LED to its cameras
+                self.emulator.add_led_output(led)
             url = self.emulator.url
         else:
             url = trig.uri
@@ -161,11 +164,14 @@ class RigSession:
 
     def _make_grouper(self) -> FrameGrouper:
         modes = {c.name: (HARDWARE if c.trigger == "hardware" else TIMED) for c in self.config.cameras}
+        latency = {c.name: int(c.latency_ms * 1e6) for c in self.config.cameras if c.latency_ms is not None}
         if self.board is not None:
-            return FrameGrouper(modes, self.config.trigger.rate_hz, clock=self.board.clock, max_wait_s=self.max_wait_s)
+            return FrameGrouper(modes, self.config.trigger.rate_hz, clock=self.board.clock, max_wait_s=self.max_wait_s,
+                                latency_ns=latency)
         left = self.config.by_role("left")
         reference = left.name if left is not None else self.config.cameras[0].name
-        return FrameGrouper(modes, self.config.camera(reference).fps, reference=reference, max_wait_s=self.max_wait_s)
+        return FrameGrouper(modes, self.config.camera(reference).fps, reference=reference, max_wait_s=self.max_wait_s,
+                            latency_ns=latency)
 
     # --- running ----------------------------------------------------------------------------------
     def start(self, pulses: int = 0) -> None:
@@ -417,6 +423,28 @@ class RigSession:
             time.sleep(max(0.0, next_t - time.monotonic()))
 
     # --- board callbacks (reader and supervisor threads: keep short) ------------------------------
+    def flash(self, ms: int) -> Optional[dict[str, Any]]:
+        """Flash the trigger board's LED for `ms` ms (cameras that cannot be triggered are aligned
+        to the pulses by it afterwards: sync.alignment). Returns where the flash began: board time,
+        host time and its position on the trigger axis (in pulse periods); None when the rig's board
+        cannot flash or did not say when it did."""
+        board = self.board
+        if board is None or not hasattr(board, "flash") or self.grouper is None:
+            return None
+        try:
+            event = board.flash(int(ms))
+        except TriggerBoardError as exc:
+            self._event("board_error", f"LED flash failed: {exc}")
+            return None
+        if event is None:
+            return None
+        board_us = int(event.values["board_us"])
+        clock = getattr(board, "clock", None)
+        flash = {"board_us": board_us, "ms": int(ms), "trigger": self.grouper.pulse_position(board_us),
+                 "host_ns": clock.board_to_host_ns(board_us) if clock is not None and clock.ready else None}
+        self._event("flash", f"LED flash of {ms} ms", flash)
+        return flash
+
     def _on_pulse(self, pulse: Pulse) -> None:
         self.grouper.add_pulse(pulse.index, pulse.board_us)
         if not pulse.late:

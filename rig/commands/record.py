@@ -9,7 +9,10 @@ from pathlib import Path
 
 def register(sub) -> None:
     p = sub.add_parser("record", help="record every camera of the rig in sync to a sequence folder; validate or repair one")
-    p.add_argument("action", nargs="?", choices=("validate", "repair"), help="validate DIR | repair DIR (omit to record); repair keeps every good set and the original index beside it")
+    p.add_argument("action", nargs="?", choices=("validate", "repair", "align"),
+                   help="validate DIR | repair DIR | align DIR (omit to record); repair keeps every good set and the original "
+                        "index beside it; align puts free-running cameras' frames on the trigger pulses by the LED flashes "
+                        "the board fired during the take (the original index kept beside it)")
     p.add_argument("dir", nargs="?", type=Path, help="sequence folder (validate / repair)")
     p.add_argument("-c", "--config", type=Path, help="rig configuration (TOML), to record")
     p.add_argument("-o", "--out", type=Path, help="new (or empty) sequence folder, to record")
@@ -17,6 +20,9 @@ def register(sub) -> None:
     g.add_argument("--seconds", type=float, help="record for this long")
     g.add_argument("--sets", type=int, help="record this many frame sets")
     p.add_argument("--pixels", action="store_true", help="validate: also decode every image (slower)")
+    p.add_argument("--camera", action="append", metavar="NAME", help="align: this camera (repeatable; default: every camera not hardware-triggered)")
+    p.add_argument("--no-flash", action="store_true", help="record: do not flash the board's LED (by default a take with free-running "
+                                                           "cameras and a trigger board gets two flashes, for `rig record align`)")
     p.add_argument("--json", action="store_true", help="print one JSON object (stderr: errors only)")
     p.set_defaults(func=cmd_record)
 
@@ -28,6 +34,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         return _validate(args)
     if args.action == "repair":
         return _repair(args)
+    if args.action == "align":
+        return _align(args)
     if args.config is None or args.out is None:
         raise ConfigError("record: needs -c RIG.toml and -o DIR (or: rig record validate|repair DIR)")
     return _record(args)
@@ -110,6 +118,31 @@ def _print_repair(r: dict) -> None:
     print(f"next: rig record validate {r['path']}")
 
 
+def _align(args) -> int:
+    from rig.commands._output import emit_json
+    from rig.storage.align import align
+
+    r = align(_need_dir(args), args.camera)
+    if args.json:
+        emit_json(r)
+    else:
+        period_ms = 1e3 / r["rate_hz"]
+        for name, c in r["cameras"].items():
+            if c["problem"]:
+                print(f"  {name}: NOT aligned: {c['problem']}")
+                continue
+            rate = f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else " (one flash: nominal clock rate)"
+            print(f"  {name}: {c['placed']} of {c['frames']} frames placed ({c['moved']} moved to another set), uncertainty "
+                  f"{c['error_periods']:.3f} frame periods ({c['error_periods'] * period_ms:.2f} ms){rate}, latency {c['latency_ms']:.1f} ms")
+        if r["backup"]:
+            print(f"the original index is kept as {r['backup']}; the report is {Path(r['path']) / 'alignment.json'}")
+    failed = [n for n, c in r["cameras"].items() if c["problem"]]
+    if failed:
+        print(f"rig: error: {args.dir}: could not align {', '.join(failed)}: {r['cameras'][failed[0]]['problem']}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def _stop_on_sigterm(signum, frame) -> None:
     """`kill` (SIGTERM) ends a take like Ctrl-C: every set already written stays valid."""
     raise KeyboardInterrupt
@@ -131,7 +164,8 @@ def _record(args) -> int:
     new_output_folder(args.out)  # a take is never written over or into another folder's files
     status = StatusLine(sys.stderr)
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
-    result = record(cfg, args.out, seconds=args.seconds, sets=args.sets, status=status, notes=Notes(quiet=args.json))
+    result = record(cfg, args.out, seconds=args.seconds, sets=args.sets, status=status, notes=Notes(quiet=args.json),
+                    flash=False if args.no_flash else None)
     status.done()
     d = result.to_dict()
     if args.json:

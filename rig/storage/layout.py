@@ -27,6 +27,7 @@ META = "sequence.json"
 FRAMES = "frames"
 CONFIG_COPY = "rig.toml"
 CALIBRATION_COPY = "calibration.json"
+FLASHES = "flashes.jsonl"  # the trigger board's LED flashes during the take (rig record align reads them)
 
 
 class SequenceError(RigError):

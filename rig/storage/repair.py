@@ -155,17 +155,17 @@ def frame_damage(root: Path, entry: CameraEntry, rec: Any) -> Optional[str]:
     return None
 
 
-def _keep_original(root: Path, data: bytes) -> Path:
+def _keep_original(root: Path, data: bytes, prefix: str = BACKUP_PREFIX, doing: str = "repairing") -> Path:
     """Write the index as it was to a new backup file beside it (never over an earlier one)."""
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     for n in range(1, 1000):
-        path = root / f"{BACKUP_PREFIX}{stamp}{'' if n == 1 else f'-{n}'}.jsonl"
+        path = root / f"{prefix}{stamp}{'' if n == 1 else f'-{n}'}.jsonl"
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
             continue
         except OSError as exc:
-            raise SequenceError(f"{root}: cannot keep a copy of the index before repairing it ({exc.strerror}); nothing was changed") from None
+            raise SequenceError(f"{root}: cannot keep a copy of the index before {doing} it ({exc.strerror}); nothing was changed") from None
         try:
             view = memoryview(data)
             while view:
@@ -174,7 +174,10 @@ def _keep_original(root: Path, data: bytes) -> Path:
         except OSError as exc:
             os.close(fd)
             path.unlink(missing_ok=True)
-            raise SequenceError(f"{path}: cannot keep a copy of the index before repairing it ({exc.strerror}); nothing was changed") from None
+            raise SequenceError(f"{path}: cannot keep a copy of the index before {doing} it ({exc.strerror}); nothing was changed") from None
         os.close(fd)
         return path
     raise SequenceError(f"{root}: too many index backups from this second; nothing was changed")
+
+
+keep_index_copy = _keep_original  # also used by `rig record align` (rig.storage.align)

@@ -1,0 +1,238 @@
+"""`rig record align TAKE`: put the frames of cameras that cannot be triggered on the pulses' axis.
+
+GoPros, webcams and any camera in trigger mode `free` expose when their own clock says. During the
+take the trigger board flashed its LED in their view (`rig record` fires a flash soon after the start
+and one near the end: the take's `flashes.jsonl`, each with its place on the trigger axis). Here,
+for each such camera:
+
+1. the frames around each flash give the flash's onset on the camera's own clock, to a fraction
+   of a frame (sync.alignment.find_flash: a frame the flash starts halfway through is half lit);
+2. the onsets and the flashes' places on the trigger axis give a line from the camera's clock to
+   the axis (two flashes: its offset and its rate; one: its offset at the nominal rate);
+3. every frame of the camera goes to the pulse nearest its exposure start on that line, with its
+   offset from it in pulse periods (-0.5 .. 0.5), and the index is rewritten so that each set holds
+   the camera's frame of its own pulse (null where the camera has none).
+
+The index as it was is kept beside it (`index.before-align-<UTC>.jsonl`, as `rig record repair`
+does), and `alignment.json` records what was found per camera: the flashes' onsets and their
+uncertainty, the clock rate, frames placed and moved, and the camera's latency (how long after its
+exposure a frame reached the host), which live grouping can use (`latency_ms` in the config).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+from common.files import atomic_write_bytes, atomic_write_json
+from rig.storage.index import scan_index
+from rig.storage.layout import CONFIG_COPY, FLASHES, INDEX, SequenceError, SequenceMeta
+from rig.storage.netpbm import read_netpbm
+from rig.storage.repair import keep_index_copy
+from sync.alignment import brightness_trace, find_flash
+from sync.errors import SyncError
+
+BACKUP_PREFIX = "index.before-align-"
+REPORT = "alignment.json"
+# Frames looked at around a flash, by host arrival: a free-running camera's frames reach the host
+# late (a GoPro's stream by a few hundred ms), never early.
+BEFORE_S, AFTER_S = 0.5, 1.5
+MAX_RATE_ERROR = 0.01  # a fitted clock rate further than 1 % from nominal means a flash was mismatched
+
+
+@dataclass
+class CameraAlignment:
+    camera: str
+    flashes: list[dict[str, Any]] = field(default_factory=list)  # per flash: onset, uncertainty, frames used
+    rate_ppm: Optional[float] = None  # how fast the camera's clock runs against the board's (two flashes or more)
+    frames: int = 0  # frames of the camera in the take
+    placed: int = 0  # frames that landed in a set of the take
+    moved: int = 0  # of those, in another set than the live grouping put them
+    latency_ms: Optional[float] = None  # median delay from exposure start to host arrival
+    error_periods: Optional[float] = None  # the alignment's uncertainty, in pulse periods
+    problem: Optional[str] = None  # why the camera could not be aligned (then its frames are untouched)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items()}
+
+
+def free_cameras(root: Path) -> list[str]:
+    """The take's cameras that were not hardware-triggered (from its copy of the rig config)."""
+    from rig.config import load_config
+
+    config = root / CONFIG_COPY
+    if not config.is_file():
+        raise SequenceError(f"{root}: no {CONFIG_COPY} in the take: name the cameras to align with --camera")
+    cfg = load_config(config, check_calibration=False)
+    return [c.name for c in cfg.cameras if c.trigger != "hardware"]
+
+
+def _camera_settings(root: Path) -> dict[str, Any]:
+    from rig.config import load_config
+
+    try:
+        return {c.name: c for c in load_config(root / CONFIG_COPY, check_calibration=False).cameras}
+    except Exception:  # noqa: BLE001 - a take without its config copy: nominal values
+        return {}
+
+
+def read_flashes(root: Path) -> list[dict[str, Any]]:
+    path = root / FLASHES
+    if not path.is_file():
+        raise SequenceError(f"{root}: no {FLASHES}: the take has no LED flashes to align by "
+                            "(record with a trigger board and free-running cameras; the LED must be in their view)")
+    flashes = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            f = json.loads(line)
+            flashes.append({"trigger": float(f["trigger"]), "host_ns": int(f["host_ns"]), "ms": float(f["ms"])})
+        except (ValueError, KeyError, TypeError):
+            continue  # a torn last line (the recorder died writing it) or a flash without a time
+    if not flashes:
+        raise SequenceError(f"{path}: no usable flash in it")
+    return sorted(flashes, key=lambda f: f["trigger"])
+
+
+def align(root: str | Path, cameras: Optional[Sequence[str]] = None) -> dict[str, Any]:
+    """Align the take's free-running cameras (or `cameras`) and rewrite its index; the report."""
+    root = Path(root)
+    meta = SequenceMeta.load(root)
+    flashes = read_flashes(root)
+    names = list(cameras) if cameras else free_cameras(root)
+    recorded = [c.name for c in meta.cameras]
+    unknown = [n for n in names if n not in recorded]
+    if unknown:
+        raise SequenceError(f"{root}: no camera {', '.join(unknown)} in the take (it has {', '.join(recorded)})")
+    if not names:
+        raise SequenceError(f"{root}: every camera of the take was hardware-triggered: nothing to align")
+    if not meta.rate_hz:
+        raise SequenceError(f"{root}: the take does not say its trigger rate (sequence.json rate_hz)")
+    rate_hz = float(meta.rate_hz)
+    settings = _camera_settings(root)
+    data = (root / INDEX).read_bytes()
+    rows = scan_index(root).rows
+    results = []
+    for name in names:
+        result, placement = _align_camera(root, name, rows, flashes, rate_hz, settings.get(name))
+        results.append(result)
+        if placement is not None:
+            _regroup(rows, name, placement, result)
+    backup = None
+    if any(r.problem is None for r in results):
+        backup = keep_index_copy(root, data, BACKUP_PREFIX, "aligning")
+        new = b"".join(json.dumps(r, separators=(", ", ": ")).encode() + b"\n" for r in rows)
+        try:
+            atomic_write_bytes(root / INDEX, new)
+        except OSError as exc:
+            raise SequenceError(f"{root / INDEX}: could not write the aligned index ({exc.strerror}); the original is "
+                                f"unchanged (a copy is in {backup.name})") from None
+    report = {"path": str(root), "rate_hz": rate_hz, "flashes": flashes, "backup": str(backup) if backup else None,
+              "cameras": {r.camera: r.to_dict() for r in results}}
+    atomic_write_json(root / REPORT, report)
+    return report
+
+
+def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], rate_hz: float, cfg):
+    """(CameraAlignment, {frame_id: (trigger, offset)} or None when it cannot be aligned)."""
+    result = CameraAlignment(name)
+    frames = {}
+    for row in rows:
+        rec = row["frames"].get(name)
+        if rec is not None and isinstance(rec.get("device_ts_ns"), int):
+            frames[int(rec["frame_id"])] = (rec, row.get("trigger"))
+    result.frames = len(frames)
+    if len(frames) < 3:
+        result.problem = f"{len(frames)} frames with timestamps in the take: too few to align"
+        return result, None
+    period_ns = 1e9 / rate_hz
+    fps = float(getattr(cfg, "fps", 0) or rate_hz)
+    exposure_ns = float(getattr(cfg, "exposure_us", 0) or 0) * 1e3 or 1e9 / fps
+    points = []  # (onset on the camera's clock, place on the trigger axis, uncertainty ns)
+    for f in flashes:
+        lo, hi = f["host_ns"] - BEFORE_S * 1e9, f["host_ns"] + f["ms"] * 1e6 + AFTER_S * 1e9
+        near = sorted((rec["device_ts_ns"], rec["file"]) for rec, _ in frames.values() if lo <= rec["host_ts_ns"] <= hi)
+        entry = {"trigger": f["trigger"], "frames": len(near)}
+        try:
+            if len(near) < 3:
+                raise SyncError(f"only {len(near)} frames near it")
+            images = [read_netpbm(root / file) for _, file in near]
+            trace = brightness_trace(images)
+            est = find_flash([t for t, _ in near], trace, exposure_ns, duration_ns=f["ms"] * 1e6)
+            _check_flash_shape(trace, [t for t, _ in near], est, f["ms"])
+        except (SyncError, OSError, ValueError) as exc:
+            entry["problem"] = f"flash at trigger {f['trigger']:.2f} not found: {exc}"
+            result.flashes.append(entry)
+            continue
+        entry.update(onset_ns=est.onset_ns, uncertainty_periods=round(est.uncertainty_ns / period_ns, 4))
+        result.flashes.append(entry)
+        points.append((est.onset_ns, f["trigger"], est.uncertainty_ns))
+    if not points:
+        result.problem = "; ".join(e.get("problem", "") for e in result.flashes) or "no flash"
+        return result, None
+    onsets = np.array([p[0] for p in points])
+    places = np.array([p[1] for p in points])
+    nominal = rate_hz / 1e9  # pulse periods per ns of the camera's clock, if it kept time perfectly
+    if len(points) >= 2 and np.ptp(onsets) > 0:
+        slope, icpt = np.polyfit(onsets - onsets[0], places, 1)
+        if abs(nominal / slope - 1) > MAX_RATE_ERROR:
+            result.problem = (f"the flashes give a clock rate {1e6 * (nominal / slope - 1):+.0f} ppm from nominal: "
+                              "a flash was matched to the wrong one")
+            return result, None
+        result.rate_ppm = round(1e6 * (nominal / slope - 1), 1)  # > 0: the camera's clock runs fast
+    else:
+        slope, icpt = nominal, places[0]
+    fit = icpt + slope * (onsets - onsets[0])
+    residual = float(np.max(np.abs(fit - places))) if len(points) > 2 else 0.0
+    result.error_periods = round(max(p[2] for p in points) / period_ns + residual, 4)
+    placement, delays = {}, []
+    for frame_id, (rec, _) in frames.items():
+        pos = icpt + slope * (rec["device_ts_ns"] - onsets[0])
+        n = int(np.floor(pos + 0.5))
+        placement[frame_id] = (n, pos - n)
+        # the flash's host time ties the axis to the host clock: where this exposure began on it
+        ref = flashes[0]
+        host_at = ref["host_ns"] + (pos - ref["trigger"]) * period_ns
+        delays.append(rec["host_ts_ns"] - host_at)
+    result.latency_ms = round(float(np.median(delays)) / 1e6, 3)
+    return result, placement
+
+
+def _check_flash_shape(trace: np.ndarray, times: list[int], est, ms: float) -> None:
+    """Something brightened: was it the flash? Its frames must form one run as long as the flash
+    (a person's arm passing a bright pixel does not), else SyncError."""
+    lit = np.asarray(trace) > est.baseline + 0.5 * est.amplitude
+    runs = int(np.sum(np.diff(lit.astype(np.int8)) == 1) + lit[0])
+    period = float(np.median(np.diff(times)))
+    expected = ms * 1e6 / period
+    if runs != 1 or abs(int(lit.sum()) - expected) > 1.5:
+        raise SyncError(f"what brightened ({int(lit.sum())} frames in {runs} runs) is not a {ms:g} ms flash "
+                        f"(about {expected:.1f} frames)")
+
+
+def _regroup(rows: list[dict], name: str, placement: dict[int, tuple[int, float]], result: CameraAlignment) -> None:
+    """Each set gets the camera's frame of its own pulse: the frame placed nearest it, else null."""
+    records = {}
+    was_in = {}
+    for row in rows:
+        rec = row["frames"].get(name)
+        if rec is not None:
+            records[int(rec["frame_id"])] = rec
+            was_in[int(rec["frame_id"])] = row.get("trigger")
+    best: dict[int, tuple[float, int]] = {}
+    for frame_id, (n, offset) in placement.items():
+        if n not in best or abs(offset) < best[n][0]:
+            best[n] = (abs(offset), frame_id)
+    for row in rows:
+        pick = best.get(row.get("trigger"))
+        if pick is None:
+            row["frames"][name] = None
+            continue
+        frame_id = pick[1]
+        rec = dict(records[frame_id])
+        rec["offset"] = round(placement[frame_id][1], 4)
+        row["frames"][name] = rec
+        result.placed += 1
+        result.moved += was_in.get(frame_id) != row.get("trigger")

@@ -1,0 +1,115 @@
+"""`rig record align`: free-running cameras put on the trigger pulses by the board's LED flashes.
+
+A simulated take: two hardware-triggered sources and two free-running cameras whose own clocks are
+offset (and one drifts), at frame rates that are not the trigger's, with a 1/33 s shutter like a video
+camera's; the scene has the board's LED in view. The truth is known: a sim camera's device timestamp
+is its exposure start on its own clock (offset and drift from the config), and a hardware camera's is
+its pulse's (plus a 20 us trigger latency) on the simulated clock.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.cameras.sim import sim_rig_config
+from rig.config import dump_config, load_config, parse_config
+from rig.storage.layout import INDEX
+from rig.storage.validate import validate
+from tests.rig.cli_helpers import assert_one_line_error, run_rig
+
+FREE = {"sup1": {"fps": 29.97, "sim": {"clock_offset_ns": 123_456_789}},
+        "sup2": {"fps": 30.02, "sim": {"clock_offset_ns": -987_654_321, "drift_ppm": 40.0}}}
+
+
+def _rig(folder: Path, led: bool = True) -> Path:
+    data = sim_rig_config(n_cameras=4, width=320, height=180)
+    data["sim"].update(led=led, loop_frames=30)
+    for cam in data["cameras"]:
+        if cam["name"] in FREE:
+            cam.update(trigger="free", exposure_us=30000.0, fps=FREE[cam["name"]]["fps"])
+            cam["sim"].update(FREE[cam["name"]]["sim"])
+    path = folder / "rig.toml"
+    path.write_text(dump_config(parse_config(data)))
+    return path
+
+
+def _truth_errors(take: Path) -> dict[str, tuple[int, float, int]]:
+    """Per free camera: frames in the wrong set, the largest offset error (pulse periods), frames checked."""
+    cfg = load_config(take / "rig.toml", check_calibration=False)
+    rows = [json.loads(line) for line in (take / INDEX).read_text().splitlines()]
+    hw = np.array([(r["trigger"], r["frames"]["left"]["device_ts_ns"]) for r in rows if r["frames"]["left"]], dtype=np.float64)
+    ns_per_pulse, at_zero = np.polyfit(hw[:, 0], hw[:, 1], 1)
+    out = {}
+    for c in cfg.cameras:
+        if c.trigger != "free":
+            continue
+        offset_ns, drift = c.sim.get("clock_offset_ns", 0), c.sim.get("drift_ppm", 0.0)
+        wrong, worst, n = 0, 0.0, 0
+        for r in rows:
+            f = r["frames"][c.name]
+            if f is None:
+                continue
+            start = (f["device_ts_ns"] - offset_ns) / (1 + drift * 1e-6)  # exposure start, simulated clock
+            pos = (start - at_zero) / ns_per_pulse
+            nearest = int(np.floor(pos + 0.5))
+            n += 1
+            if nearest != r["trigger"]:
+                wrong += 1
+            else:
+                worst = max(worst, abs((pos - nearest) - f["offset"]))
+        out[c.name] = (wrong, worst, n)
+    return out
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("align")
+    config = _rig(folder)
+    rec = run_rig("record", "-c", config, "-o", folder / "take", "--seconds", 4, "--json", timeout=180)
+    assert rec.returncode == 0, rec.stderr
+    assert json.loads(rec.stdout)["flashes"] == 2
+    return folder / "take"
+
+
+def test_align_gives_free_running_frames_their_pulse_and_offset(take):
+    before = (take / INDEX).read_bytes()
+    proc = run_rig("record", "align", take, "--json")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert set(report["cameras"]) == {"sup1", "sup2"}
+    for name, cam in report["cameras"].items():
+        assert cam["problem"] is None, cam
+        assert len([f for f in cam["flashes"] if "onset_ns" in f]) == 2
+        assert cam["placed"] >= cam["frames"] - 3, cam  # at most the frames beyond the take's first and last pulse
+        assert cam["error_periods"] < 0.1, cam
+        assert 25 < cam["latency_ms"] < 40, cam  # a sim camera delivers at its exposure's end: 30 ms after its start
+        assert cam["rate_ppm"] is not None and abs(cam["rate_ppm"]) < 1000, cam  # two flashes: the clock's rate too
+    errors = _truth_errors(take)
+    for name, (wrong, worst, n) in errors.items():
+        print(f"{name}: {n} frames, {wrong} in the wrong set, offset error at most {worst:.4f} frame periods")
+        assert n > 100 and wrong == 0, errors
+        assert worst < 0.1, errors
+    backup = Path(report["backup"])
+    assert backup.read_bytes() == before  # the original index, byte for byte
+    assert json.loads((take / "alignment.json").read_text())["cameras"]["sup1"]["placed"] == report["cameras"]["sup1"]["placed"]
+    v = validate(take)
+    assert v.readable and not v.errors, v.errors
+
+
+def test_align_says_what_is_wrong_in_one_line(take, tmp_path):
+    assert_one_line_error(run_rig("record", "align", take, "--camera", "nosuch"), "no camera nosuch")
+    assert_one_line_error(run_rig("record", "align", tmp_path / "missing"), "no such sequence folder")
+    # a scene without the LED: the board flashes, no camera sees it
+    config = _rig(tmp_path, led=False)
+    rec = run_rig("record", "-c", config, "-o", tmp_path / "dark", "--seconds", 2, "--json", timeout=180)
+    assert rec.returncode == 0, rec.stderr
+    assert json.loads(rec.stdout)["flashes"] == 1  # a take this short gets the first flash only
+    index = (tmp_path / "dark" / INDEX).read_bytes()
+    assert_one_line_error(run_rig("record", "align", tmp_path / "dark"), "could not align sup1, sup2", "not found", code=1)
+    assert (tmp_path / "dark" / INDEX).read_bytes() == index  # nothing changed
+    assert not list((tmp_path / "dark").glob("index.before-align-*"))
+    (tmp_path / "dark" / "flashes.jsonl").unlink()  # a take recorded with --no-flash
+    assert_one_line_error(run_rig("record", "align", tmp_path / "dark"), "no flashes.jsonl")
