@@ -11,8 +11,8 @@ the daemon itself stays up. Beside the ring:
   hardware edge (b"H" + pulse index + host time, little-endian int64s) in one datagram, so that a
   session's (emulated) trigger board reaches a camera in another process within a millisecond; the
   same socket takes readers' doorbell subscriptions (b"W", renewed every second, lapsing after 5 s):
-  after each frame it writes, the daemon sends each subscriber one byte, so a reader blocked on its
-  socket wakes within tens of microseconds instead of polling the ring;
+  as it begins to copy each frame into the ring, the daemon sends each subscriber one byte, so a
+  reader blocked on its socket wakes while the frame is copied instead of polling the ring;
 - its info file (rig.daemon.paths), written once all of that serves, removed at a clean exit;
 - an mDNS advertisement (`_rigcam._tcp.local.`, rig.daemon.discovery), unless disabled;
 - sd_notify READY once the camera acquires and WATCHDOG from the acquisition loop (rig.daemon.notify),
@@ -301,7 +301,9 @@ class CameraDaemon:
                     self._publish()
                     continue
             try:
-                self.ring.write(frame)
+                # the doorbells ring once the slot is marked, before the copy: a reader's wake-up
+                # overlaps the write (rig.daemon.client)
+                self.ring.write(frame, started=self._ring_doorbells)
             except RingError as exc:
                 self.counters["ring_errors"] += 1
                 if self.counters["ring_errors"] == 1:
@@ -309,7 +311,6 @@ class CameraDaemon:
                 continue
             self.last_frame_ns = monotonic_ns()
             self._recent.append(self.last_frame_ns)
-            self._ring_doorbells()
 
     def _ring_doorbells(self) -> None:
         if not self._watchers:

@@ -62,7 +62,7 @@ import struct
 import tempfile
 import time
 from pathlib import Path
-from typing import Union
+from typing import Callable, Optional, Union
 
 import numpy as np
 
@@ -183,8 +183,9 @@ class FrameRing(_Mapped):
         ring._map(mm, slots, shape, DTYPES[code], stride)
         return ring
 
-    def write(self, frame: Frame) -> int:
-        """Copies `frame` into the next slot; returns its sequence number k."""
+    def write(self, frame: Frame, started: Optional[Callable[[], None]] = None) -> int:
+        """Copies `frame` into the next slot; returns its sequence number k. `started()` is called
+        once the slot is marked as being written, before the pixels are copied."""
         if self._mm is None:
             raise RingError(f"{self.path}: the ring is closed")
         image = frame.image
@@ -204,6 +205,8 @@ class FrameRing(_Mapped):
         i = k % self.slots
         self._locks[i] = 2 * k + 1  # odd: being written
         self._meta[i] = meta
+        if started is not None:
+            started()
         np.copyto(self._pixels[i], image)
         self._locks[i] = 2 * k + 2  # even: frame k complete
         self._seq[...] = k + 1
@@ -306,6 +309,10 @@ class RingReader(_Mapped):
                      exposure_us=None if math.isnan(exposure) else exposure,
                      trigger_index=None if trigger == -1 else trigger,
                      sim_time_s=None if math.isnan(sim_time) else sim_time)
+
+    def writing(self, k: int) -> bool:
+        """Frame k is being copied into its slot right now."""
+        return self._mm is not None and k >= 0 and int(self._locks[k % self.slots]) == 2 * k + 1
 
     def wait(self, k: int, timeout: float) -> bool:
         """True once frame k is written (False after `timeout` s): polls, sleeping 0.2 ms up to 2 ms."""

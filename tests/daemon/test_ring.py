@@ -382,3 +382,17 @@ def test_default_path(monkeypatch):
         path.parent.rmdir()
         if not root_was_there:
             path.parent.parent.rmdir()
+
+
+def test_started_is_called_once_the_slot_is_marked(tmp_path):
+    """The writer's `started` callback (the daemon rings readers' doorbells from it) runs with the
+    slot marked as being written, so a reader that looks then sees the frame coming, not done."""
+    path = tmp_path / "rig" / "cam0"
+    shape = (48, 64, 3)
+    seen = []
+    with create(path, shape, slots=2) as ring, RingReader.attach(path) as reader:
+        imgs = images(shape, np.uint8)
+        for k in range(3):
+            ring.write(make_frame(k, imgs), started=lambda k=k: seen.append((reader.writing(k), reader.write_seq)))
+            assert not reader.writing(k) and reader.write_seq == k + 1
+    assert seen == [(True, 0), (True, 1), (True, 2)]
