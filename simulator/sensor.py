@@ -339,7 +339,10 @@ class SimRig:
         from simulator.rig import arc_rig
 
         self.options = validate_scene_options(getattr(config, "sim", {}) or {})
-        cams = [c for c in config.cameras if str(c.uri).startswith("sim://")]
+        # sim:// cameras; in a simulated rig (one with a [sim] table) also the cameras its emulators
+        # stand in for (gopro://, stream:// on simulator/ emulators): they see the same scene
+        emulated = bool(getattr(config, "sim", None))
+        cams = [c for c in config.cameras if str(c.uri).startswith("sim://") or (emulated and not str(c.uri).startswith("aravis://"))]
         if not cams:
             raise SimulatorError("the configuration has no sim:// cameras")
         order = {"left": 0, "right": 2}
@@ -355,7 +358,7 @@ class SimRig:
             from simulator.led import FlashLed
 
             # On a truss above the back of the stage, near the top of every camera's view.
-            self.led = FlashLed(LED_POSITION, radius_m=0.08, radiance=0.1)  # unsaturated at a 1/30 s shutter
+            self.led = FlashLed(LED_POSITION, radius_m=0.08, radiance=0.04)  # unsaturated up to a 1/15 s shutter
 
     @property
     def scene(self):

@@ -112,7 +112,7 @@ class UdpTsStreamer:
         key_next = False
         try:
             while not self._stop.is_set():
-                due = self.started_at + k / self.fps
+                due = self.started_at + (k + 1) / self.fps  # frame k is read out once its time is over
                 wait = due - time.monotonic()
                 if wait > 0 and self._stop.wait(wait):
                     break
@@ -208,7 +208,7 @@ class MjpegHttpServer:
         self.started_at = time.monotonic()
         k = 0
         while not self._stop.is_set():
-            due = self.started_at + k / self.fps
+            due = self.started_at + (k + 1) / self.fps
             wait = due - time.monotonic()
             if wait > 0 and self._stop.wait(wait):
                 break

@@ -120,6 +120,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
         flash = cfg.trigger is not None and any(c.trigger == "free" for c in cfg.cameras)
     rate_hz = rate
     flash_times = []
+    waiting_for: set = set()
     try:
         # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
         session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S, on_phase=notes)
@@ -130,6 +131,9 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
             if flash and session.board is not None:
                 flasher = _Flasher(session, Path(out))
                 length = seconds if seconds is not None else sets / rate_hz
+                # the first flash once every free-running camera delivers (a GoPro's stream takes a while
+                # to start), the second near the end
+                waiting_for = {c.name for c in cfg.cameras if c.trigger == "free"}
                 flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
             for fs in session.framesets():
                 if not writer.write(fs):
@@ -141,7 +145,12 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                     t_first = time.monotonic()  # the take starts with its first set, after the clock warm-up
                     cpu0 = time.process_time()
                 elapsed = time.monotonic() - t_first
-                while flasher is not None and flash_times and elapsed >= flash_times[0]:
+                if flasher is not None and waiting_for:
+                    waiting_for -= {n for n, f in fs.frames.items() if f is not None}
+                    if not waiting_for:  # every free-running camera delivers: the first flash is due
+                        first = elapsed + FLASH_AT_S
+                        flash_times = [first] + [t for t in flash_times[1:] if t > first + 1.0]
+                while flasher is not None and not waiting_for and flash_times and elapsed >= flash_times[0]:
                     flash_times.pop(0)
                     flasher.fire()
                 if status is not None:
