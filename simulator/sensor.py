@@ -341,8 +341,8 @@ class SimRig:
         self.options = validate_scene_options(getattr(config, "sim", {}) or {})
         # sim:// cameras; in a simulated rig (one with a [sim] table) also the cameras its emulators
         # stand in for (gopro://, stream:// on simulator/ emulators): they see the same scene
-        emulated = bool(getattr(config, "sim", None))
-        cams = [c for c in config.cameras if str(c.uri).startswith("sim://") or (emulated and not str(c.uri).startswith("aravis://"))]
+        emulated = ("sim://", "gopro://", "stream://") if getattr(config, "sim", None) else ("sim://",)
+        cams = [c for c in config.cameras if str(c.uri).startswith(emulated)]
         if not cams:
             raise SimulatorError("the configuration has no sim:// cameras")
         order = {"left": 0, "right": 2}
