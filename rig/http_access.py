@@ -17,6 +17,7 @@ from urllib.parse import parse_qs, urlsplit
 from fastapi.responses import JSONResponse
 from starlette.requests import cookie_parser
 
+from common.net import listening_socket
 from rig.errors import RigError
 
 
@@ -107,16 +108,6 @@ def bind_socket(host: str, port: int, what: str) -> socket.socket:
     """A listening, non-blocking TCP socket for uvicorn (port 0: any free port); one-line RigError
     naming `what` when the address cannot be had."""
     try:
-        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
-        sock = socket.socket(family, kind, proto)
+        return listening_socket(host, port)
     except OSError as exc:
         raise RigError(f"{what}: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(address)
-        sock.listen(128)
-    except OSError as exc:
-        sock.close()
-        raise RigError(f"{what}: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
-    sock.setblocking(False)
-    return sock

@@ -42,6 +42,7 @@ from typing import Any, Callable, Iterable, Optional
 
 import requests
 
+from common.files import fsync_dir, fsync_file
 from rig.errors import CameraDisconnected, ConfigError, DeviceError, DeviceNotFound
 
 API_VERSION = "2.0"
@@ -628,9 +629,9 @@ class GoProClient:
         if size != total or (expected is not None and size != expected):
             raise DeviceError(f"{self.uri}: {directory}/{name} arrived with {size} bytes, expected "
                               f"{expected if expected is not None else total}")
-        _fsync(part)
+        fsync_file(part)
         os.replace(part, final)
-        _fsync_dir(folder)
+        fsync_dir(folder)
         return final
 
     def _fetch(self, directory: str, name: str, part: Path, offset: int, chunk_size: int) -> int:
@@ -772,27 +773,6 @@ def _content_range(header: Optional[str]) -> tuple[Optional[int], Optional[int]]
 def _content_range_total(header: Optional[str]) -> Optional[int]:
     m = re.fullmatch(r"\s*bytes\s+\*/(\d+)\s*", header or "")
     return int(m.group(1)) if m else None
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 # --- discovery ---------------------------------------------------------------------------------------------

@@ -26,6 +26,7 @@ import uvicorn
 from fastapi import FastAPI, Query, Request
 from fastapi.responses import JSONResponse, Response
 
+from common.net import listening_socket
 from simulator.errors import SimulatorError
 from simulator.gopro.camera_state import API_VERSION
 from simulator.gopro.ranges import Body, Unsatisfiable, parse_range
@@ -259,19 +260,9 @@ class _ThreadServer(uvicorn.Server):
 
 def _bind(host: str, port: int) -> socket.socket:
     try:
-        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)[0]
-        sock = socket.socket(family, kind, proto)
+        return listening_socket(host, port)
     except OSError as exc:
         raise SimulatorError(f"GoPro emulator: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(address)
-        sock.listen(128)
-    except OSError as exc:
-        sock.close()
-        raise SimulatorError(f"GoPro emulator: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
-    sock.setblocking(False)
-    return sock
 
 
 class HttpServer:
