@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from urllib.parse import urlsplit
 
-from rig.cameras.base import Camera, DeviceInfo
-from rig.cameras.video_reader import VideoReader
+from rig.cameras.base import DeviceInfo
+from rig.cameras.video_reader import ReaderCamera, VideoReader
 from rig.errors import ConfigError
 
 SCHEME = "stream"
@@ -40,7 +40,7 @@ def inner_url(uri: str) -> tuple[str, str]:
     return inner, parts.scheme
 
 
-class StreamCamera(Camera):
+class StreamCamera(ReaderCamera):
     def __init__(self, uri: str, settings):
         super().__init__(uri, settings)
         self.url, scheme = inner_url(uri)
@@ -59,24 +59,6 @@ class StreamCamera(Camera):
         self.reader = VideoReader(url, settings.name, format=fmt, options=options, stall_s=STALL_S,
                                   pixel_format=settings.pixel_format, size=(settings.width, settings.height))
         self._started = False
-
-    def start(self) -> None:
-        if not self._started:
-            self.reader.start()
-            self._started = True
-
-    def stop(self) -> None:
-        if self._started:
-            self.reader.stop()
-            self._started = False
-
-    def close(self) -> None:
-        self.stop()
-
-    def _read_frame(self, timeout: float):
-        frame = self.reader.read(timeout)
-        self.stats.extra["stream_dropped"] = self.reader.stats.dropped
-        return frame
 
     def reconnect(self) -> bool:
         self.reader.reopen()

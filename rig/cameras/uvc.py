@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Optional
 from urllib.parse import parse_qs, urlsplit
 
-from rig.cameras.base import Camera, DeviceInfo
-from rig.cameras.video_reader import VideoReader
+from rig.cameras.base import DeviceInfo
+from rig.cameras.video_reader import ReaderCamera, VideoReader
 from rig.errors import ConfigError, DeviceError, DeviceNotFound
 
 SCHEME = "uvc"
@@ -90,7 +90,7 @@ def parse_uri(uri: str) -> tuple[str, str]:
     return parts.path, fourcc
 
 
-class UvcCamera(Camera):
+class UvcCamera(ReaderCamera):
     def __init__(self, uri: str, settings):
         super().__init__(uri, settings)
         self.device, self.fourcc = parse_uri(uri)
@@ -106,7 +106,7 @@ class UvcCamera(Camera):
                                   pixel_format=settings.pixel_format, size=(settings.width, settings.height))
         self._started = False
 
-    def _set_controls(self) -> None:
+    def _before_start(self) -> None:
         """Exposure (manual when exposure_us is set, else automatic) and gain, as V4L2 controls."""
         s = self.settings
         controls = []
@@ -128,23 +128,6 @@ class UvcCamera(Camera):
                     raise DeviceError(f"{self.name}: {self.device} refused control 0x{cid:08x} = {value} ({exc.strerror})") from None
         finally:
             os.close(fd)
-
-    def start(self) -> None:
-        if not self._started:
-            self._set_controls()
-            self.reader.start()
-            self._started = True
-
-    def stop(self) -> None:
-        if self._started:
-            self.reader.stop()
-            self._started = False
-
-    def close(self) -> None:
-        self.stop()
-
-    def _read_frame(self, timeout: float):
-        return self.reader.read(timeout)
 
     def reconnect(self) -> bool:
         if not os.path.exists(self.device):

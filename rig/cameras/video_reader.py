@@ -21,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 
+from rig.cameras.base import Camera
 from rig.errors import CameraDisconnected, CameraTimeout
 from sync.frames import Frame, monotonic_ns
 
@@ -161,3 +162,33 @@ class VideoReader:
                     pass
 
 
+
+
+class ReaderCamera(Camera):
+    """A free-running camera whose frames come from a VideoReader (`self.reader`, set by the
+    subclass): stream:// and uvc://. `_before_start()` is the subclass's device set-up."""
+
+    reader: VideoReader
+    _started = False
+
+    def _before_start(self) -> None:
+        pass
+
+    def start(self) -> None:
+        if not self._started:
+            self._before_start()
+            self.reader.start()
+            self._started = True
+
+    def stop(self) -> None:
+        if self._started:
+            self.reader.stop()
+            self._started = False
+
+    def close(self) -> None:
+        self.stop()
+
+    def _read_frame(self, timeout: float) -> Frame:
+        frame = self.reader.read(timeout)
+        self.stats.extra["stream_dropped"] = self.reader.stats.dropped
+        return frame
