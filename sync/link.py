@@ -23,8 +23,9 @@ from sync.protocol import BOARD, LineReader, Message
 
 BAUDRATE = 115200
 
-# What pyserial raises from a port that another thread closed under it, besides its own errors.
-_CLOSED_UNDER_US = (TypeError, AttributeError)
+# What pyserial raises from a port that another thread closed under it, besides its own errors
+# (socket://: a ValueError from select() on the closed socket's fd -1).
+_CLOSED_UNDER_US = (TypeError, AttributeError, ValueError)
 
 
 def port_url(uri: str) -> str:
@@ -130,8 +131,7 @@ class SerialLink:
             now = time.monotonic_ns()
             try:
                 port.write(data)
-            except (serial.SerialException, OSError, ValueError, *_CLOSED_UNDER_US) as exc:
-                # ValueError too: pyserial's "write on a closed port"
+            except (serial.SerialException, OSError, *_CLOSED_UNDER_US) as exc:  # ValueError: "write on a closed port"
                 self.drop(port, f"write failed: {exc or type(exc).__name__}")
                 raise TriggerBoardError(f"{self.uri}: trigger board disconnected ({exc or type(exc).__name__})") from None
             return now
