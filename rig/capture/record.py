@@ -135,7 +135,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                 # to start), the second near the end
                 waiting_for = {c.name for c in cfg.cameras if c.trigger == "free"}
                 flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
-            for fs in session.framesets():
+            for fs in _sets(session, lambda: seconds is not None and t_first is not None and time.monotonic() - t_first >= seconds):
                 if not writer.write(fs):
                     result.stopped_by = "storage"
                     session.stop()
@@ -186,6 +186,19 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
         result.errors.append(str(writer.error))
         result.stopped_by = "storage"
     return result
+
+
+def _sets(session, over: Callable[[], bool]):
+    """The session's sets until it ends; `over()` is asked also while none arrive (a trigger board
+    gone for good sends none), so a take of known length stops on time whatever came of its sets."""
+    while True:
+        fs = session.next_set(timeout=0.1)
+        if fs is not None:
+            yield fs
+        elif session.finished:
+            return
+        elif over():
+            session.stop()
 
 
 def _status_text(result: RecordResult, writer: SequenceWriter, session, elapsed: float, out: Path) -> str:

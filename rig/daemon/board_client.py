@@ -88,6 +88,7 @@ class RemoteBoard:
         self._done: Optional[int] = None
         self._last_message = 0.0
         self._ever = False
+        self._owner_fit = False  # a clock fit came from the current owner
         self._thread: Optional[threading.Thread] = None
 
     # --- control -------------------------------------------------------------------------------------
@@ -166,6 +167,13 @@ class RemoteBoard:
         for fn in list(self._event_listeners):
             fn(event)
 
+    def _owner_changed(self) -> None:
+        self._owner_fit = False  # the old fit stays until the new owner's replaces it (readers never see none)
+        if self._connected.is_set():
+            self._connected.clear()
+            self._emit(BoardEvent("disconnected", f"trigger board daemon of rig '{self.rig}' (pid {self.info.get('pid')}) is gone",
+                                  monotonic_ns()))
+
     def _listen(self) -> None:
         renew = 0.0
         while not self._closed.is_set():
@@ -177,18 +185,22 @@ class RemoteBoard:
                 self._connected.clear()
                 self._emit(BoardEvent("disconnected", f"trigger board daemon of rig '{self.rig}' stopped answering", monotonic_ns()))
             try:
-                data, _ = self._sock.recvfrom(65536)
+                data, source = self._sock.recvfrom(65536)
             except socket.timeout:
                 continue
             except OSError:
                 return
+            if source[1] != int(self.info["event_port"]):
+                continue  # a message the old owner sent before it went
             try:
                 msg = json.loads(data)
             except ValueError:
                 continue
             self._last_message = time.monotonic()
-            self.clock.update(msg.get("clock"))
-            if not self._connected.is_set() and self.clock.ready:
+            if msg.get("clock"):
+                self.clock.update(msg["clock"])
+                self._owner_fit = True
+            if not self._connected.is_set() and self._owner_fit:
                 self._connected.set()
                 if self._ever:
                     self._emit(BoardEvent("connected", f"trigger board daemon of rig '{self.rig}' answers again", monotonic_ns(),
@@ -207,9 +219,15 @@ class RemoteBoard:
                 self._emit(event)  # the owner's board too may go and come back
 
     def _subscribe(self) -> None:
-        """Subscribe (and renew): to the daemon now in the info file (a restarted one has a new port)."""
+        """Subscribe (and renew): to the daemon now in the info file (a restarted one has a new port).
+        A new owner (another pid) is a board that went and came back, however quickly the supervisor
+        restarted it: its board has a train of its own to start and a clock of its own (the old fit
+        maps another board's times), so the old owner is reported lost and the new one is heard only
+        once its own clock fit arrives."""
         info = board_daemon(self.rig)
         if info is not None:
+            if info.get("pid") != self.info.get("pid"):
+                self._owner_changed()
             self.info = info
         try:
             self._sock.sendto(b"SUB", ("127.0.0.1", int(self.info["event_port"])))

@@ -323,6 +323,37 @@ def test_the_trigger_board_daemon_drives_takes_and_a_killed_one_comes_back(tmp_p
         print(up.stop())
 
 
+def test_a_take_of_known_length_ends_on_time_when_the_board_never_comes_back(tmp_path):
+    """The board's daemon killed while its supervisor is stopped, so no board ever pulses again: a
+    `--seconds 5` take still ends at 5 s, with what it had and the board's loss said (it waited for
+    a set that never came, for ever, before)."""
+    config = rig_file(tmp_path, n=2)
+    up = Up(config, tmp_path / "shm")
+    try:
+        wait_running(up.root, "sim-2cam", 2)
+        rec = subprocess.Popen([sys.executable, "-m", "rig", "record", "-c", str(config), "-o", str(tmp_path / "seq"), "--seconds", "5",
+                                "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=up.env)
+        index = tmp_path / "seq" / INDEX
+        deadline = time.monotonic() + 60
+        while not index.exists() or index.stat().st_size < 2000:
+            assert rec.poll() is None and time.monotonic() < deadline, rec.communicate()
+            time.sleep(0.05)
+        t_first = time.monotonic()
+        up.proc.send_signal(signal.SIGSTOP)  # no supervisor: nothing restarts the board
+        os.kill(state(up.root, "sim-2cam")["cameras"]["@board"]["pid"], signal.SIGKILL)
+        out, err = rec.communicate(timeout=30)
+        took = time.monotonic() - t_first
+        assert took < 5 + 6, took  # the take's 5 s from its first set, the stop's settling, the process's exit
+        result = json.loads(out)
+        assert result["stopped_by"] == "done" and 0 < result["sets"] == result["complete_sets"], result
+        assert "trigger board" in err and ("is gone" in err or "stopped answering" in err), err
+        v = validate(tmp_path / "seq")
+        assert v.readable and v.errors == [], v.errors
+    finally:
+        up.proc.send_signal(signal.SIGCONT)
+        up.stop()
+
+
 def test_rig_up_daemons_are_found_by_discover_network_within_3_s(tmp_path):
     config = rig_file(tmp_path, n=2, trigger="free")
     root = tmp_path / "shm"
