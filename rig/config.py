@@ -267,8 +267,21 @@ def _parse_cameras(cams_raw, given: bool, problems: _Problems) -> tuple[list[Cam
         elif vals.get("sim") and scheme is not None:
             problems.add(f"{where}.sim: sensor-model options apply to sim:// cameras only")
         if len(problems.lines) == before:
-            cameras.append(CameraConfig(**vals))
+            cam = CameraConfig(**vals)
+            for line in _backend_problems(cam):
+                problems.add(f"{where}: {line}")
+            if len(problems.lines) == before:
+                cameras.append(cam)
     return cameras, hardware
+
+
+def _backend_problems(cam: CameraConfig) -> list[str]:
+    """What the camera's backend says of these settings (a GoPro cannot be triggered, a webcam URI
+    names a device, ...): backends that can check define `problems(uri, settings)`."""
+    from rig.cameras import backend
+
+    check = getattr(backend(cam.scheme), "problems", None)
+    return check(cam.uri, cam) if check is not None else []
 
 
 def _parse_trigger(tables: dict, hardware: list[str], problems: _Problems) -> Optional[TriggerConfig]:

@@ -48,6 +48,15 @@ class CameraStats:
         return d
 
 
+def raise_problems(settings, uri: str, problems: list[str]) -> None:
+    """Open-time form of a backend's `problems(uri, settings)` (the same checks `rig config check`
+    makes): the first problem, as one line naming the camera."""
+    from rig.errors import ConfigError
+
+    if problems:
+        raise ConfigError(f"{settings.name} ({uri}): {problems[0]}")
+
+
 class Camera(abc.ABC):
     """One open camera. Use as a context manager to be sure it is closed."""
 

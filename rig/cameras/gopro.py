@@ -21,7 +21,7 @@ import threading
 from typing import Optional
 from urllib.parse import parse_qs, urlsplit
 
-from rig.cameras.base import Camera, DeviceInfo
+from rig.cameras.base import Camera, DeviceInfo, raise_problems
 from rig.cameras.gopro_http import (DEFAULT_WEBCAM_PORT, GoProClient, LinkEvent, discover_mdns, discover_usb,
                                     _check_serial)
 from rig.cameras.video_reader import VideoReader
@@ -70,19 +70,28 @@ def parse_uri(uri: str) -> tuple[str, Optional[str], int]:
     return serial, base_url, port
 
 
+def problems(uri: str, settings) -> list[str]:
+    """What keeps these settings from working with a GoPro (`rig config check` and opening ask)."""
+    out = []
+    try:
+        parse_uri(uri)
+    except ConfigError as exc:
+        out.append(str(exc))
+    if settings.trigger != "free":
+        out.append('a GoPro cannot be triggered; set trigger = "free" (the take is aligned afterwards: rig record align)')
+    if (settings.width, settings.height) not in SIZES:
+        out.append(f"the webcam stream is {', '.join(f'{w}x{h}' for w, h in SIZES)}; got {settings.width}x{settings.height}")
+    if settings.pixel_format not in ("RGB8", "Mono8"):
+        out.append(f"pixel_format must be RGB8 or Mono8 for a GoPro, got {settings.pixel_format}")
+    return out
+
+
 class GoProCamera(Camera):
     def __init__(self, uri: str, settings):
         super().__init__(uri, settings)
+        raise_problems(settings, uri, problems(uri, settings))
         self.serial, base_url, self.port = parse_uri(uri)
-        if settings.trigger != "free":
-            raise ConfigError(f"{settings.name} ({uri}): a GoPro cannot be triggered; set trigger = \"free\" "
-                              "(the take is aligned afterwards: rig record align)")
         size = (settings.width, settings.height)
-        if size not in SIZES:
-            raise ConfigError(f"{settings.name} ({uri}): the webcam stream is {', '.join(f'{w}x{h}' for w, h in SIZES)}; "
-                              f"got {settings.width}x{settings.height}")
-        if settings.pixel_format not in ("RGB8", "Mono8"):
-            raise ConfigError(f"{settings.name} ({uri}): pixel_format must be RGB8 or Mono8 for a GoPro, got {settings.pixel_format}")
         self.resolution = SIZES[size]
         self.link_events: list[LinkEvent] = []
         self._lock = threading.Lock()

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from urllib.parse import urlsplit
 
-from rig.cameras.base import DeviceInfo
+from rig.cameras.base import DeviceInfo, raise_problems
 from rig.cameras.video_reader import ReaderCamera, VideoReader
 from rig.errors import ConfigError
 
@@ -40,14 +40,25 @@ def inner_url(uri: str) -> tuple[str, str]:
     return inner, parts.scheme
 
 
+def problems(uri: str, settings) -> list[str]:
+    """What keeps these settings from working with a network stream (`rig config check` and opening ask)."""
+    out = []
+    try:
+        inner_url(uri)
+    except ConfigError as exc:
+        out.append(str(exc))
+    if settings.trigger != "free":
+        out.append('a network stream cannot be triggered; set trigger = "free" (the take is aligned afterwards: rig record align)')
+    if settings.pixel_format not in ("RGB8", "Mono8"):
+        out.append(f"pixel_format must be RGB8 or Mono8 for a stream, got {settings.pixel_format}")
+    return out
+
+
 class StreamCamera(ReaderCamera):
     def __init__(self, uri: str, settings):
         super().__init__(uri, settings)
+        raise_problems(settings, uri, problems(uri, settings))
         self.url, scheme = inner_url(uri)
-        if settings.trigger != "free":
-            raise ConfigError(f"{settings.name} ({uri}): a network stream cannot be triggered; set trigger = \"free\"")
-        if settings.pixel_format not in ("RGB8", "Mono8"):
-            raise ConfigError(f"{settings.name} ({uri}): pixel_format must be RGB8 or Mono8 for a stream, got {settings.pixel_format}")
         options = {}
         url = self.url
         if scheme == "rtsp":

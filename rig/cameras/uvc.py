@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Optional
 from urllib.parse import parse_qs, urlsplit
 
-from rig.cameras.base import DeviceInfo
+from rig.cameras.base import DeviceInfo, raise_problems
 from rig.cameras.video_reader import ReaderCamera, VideoReader
 from rig.errors import ConfigError, DeviceError, DeviceNotFound
 
@@ -90,14 +90,25 @@ def parse_uri(uri: str) -> tuple[str, str]:
     return parts.path, fourcc
 
 
+def problems(uri: str, settings) -> list[str]:
+    """What keeps these settings from working with a webcam (`rig config check` and opening ask)."""
+    out = []
+    try:
+        parse_uri(uri)
+    except ConfigError as exc:
+        out.append(str(exc))
+    if settings.trigger != "free":
+        out.append('a webcam cannot be triggered; set trigger = "free" (the take is aligned afterwards: rig record align)')
+    if settings.pixel_format not in ("RGB8", "Mono8"):
+        out.append(f"pixel_format must be RGB8 or Mono8 for a webcam, got {settings.pixel_format}")
+    return out
+
+
 class UvcCamera(ReaderCamera):
     def __init__(self, uri: str, settings):
         super().__init__(uri, settings)
+        raise_problems(settings, uri, problems(uri, settings))
         self.device, self.fourcc = parse_uri(uri)
-        if settings.trigger != "free":
-            raise ConfigError(f"{settings.name} ({uri}): a webcam cannot be triggered; set trigger = \"free\"")
-        if settings.pixel_format not in ("RGB8", "Mono8"):
-            raise ConfigError(f"{settings.name} ({uri}): pixel_format must be RGB8 or Mono8 for a webcam, got {settings.pixel_format}")
         if not os.path.exists(self.device):
             raise DeviceNotFound(f"{settings.name}: no webcam at {self.device} (`rig discover` lists the ones plugged in)")
         options = {"video_size": f"{settings.width}x{settings.height}", "framerate": f"{settings.fps:g}",

@@ -163,6 +163,55 @@ def test_check_lists_every_problem_one_line_each(tmp_path):
     assert "3 more problems" in other and "rig config check" in other
 
 
+FREE_RUNNING = GOOD + """
+[[cameras]]
+name = "gp"
+uri = "gopro://C3501324645504@127.0.0.1:8080?port=9000"
+width = 1280
+height = 720
+pixel_format = "RGB8"
+trigger = "free"
+[[cameras]]
+name = "cam"
+uri = "uvc:///dev/video0?fourcc=YUYV"
+pixel_format = "RGB8"
+[[cameras]]
+name = "net"
+uri = "stream://rtsp://192.0.2.7/stream1"
+pixel_format = "RGB8"
+"""
+
+BACKEND_BAD = [
+    ("gopro triggered", FREE_RUNNING.replace('trigger = "free"', 'trigger = "hardware"'), ["'gp'", "GoPro cannot be triggered", "free"]),
+    ("gopro size", FREE_RUNNING.replace("width = 1280", "width = 1024"), ["'gp'", "1920x1080", "1024x720"]),
+    ("gopro pixels", FREE_RUNNING.replace('"RGB8"\ntrigger = "free"', '"BayerRG8"\ntrigger = "free"'), ["'gp'", "RGB8 or Mono8", "BayerRG8"]),
+    ("gopro serial", FREE_RUNNING.replace("C3501324645504@", "xyz@"), ["'gp'", "xyz"]),
+    ("uvc path", FREE_RUNNING.replace("uvc:///dev/video0", "uvc://video0"), ["'cam'", "uvc:///dev/videoN"]),
+    ("uvc fourcc", FREE_RUNNING.replace("fourcc=YUYV", "fourcc=H264"), ["'cam'", "fourcc", "MJPG"]),
+    ("stream scheme", FREE_RUNNING.replace("stream://rtsp://", "stream://ftp://"), ["'net'", "stream://URL", "rtsp://"]),
+    ("stream software trigger", FREE_RUNNING + 'trigger = "software"\n',
+     ["'net'", "network stream cannot be triggered"]),
+]
+
+
+def test_the_free_running_backends_check_as_a_good_config(tmp_path):
+    path = tmp_path / "rig.toml"
+    path.write_text(FREE_RUNNING)
+    proc = run_rig("config", "check", path)
+    assert proc.returncode == 0, proc.stderr
+
+
+@pytest.mark.parametrize("label,text,fragments", BACKEND_BAD, ids=[b[0] for b in BACKEND_BAD])
+def test_check_asks_each_backend_about_its_cameras(tmp_path, label, text, fragments):
+    """GoPro, webcam and stream settings their backend cannot take are found by `rig config check`
+    (before: only when the camera was opened, mid-command)."""
+    assert text != FREE_RUNNING
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    line = assert_one_line_error(run_rig("config", "check", path), *fragments)
+    assert str(path) in line
+
+
 def test_init_to_an_unwritable_or_bad_path_is_one_line(tmp_path):
     assert_one_line_error(run_rig("config", "init", "--sim", "/proc/no/rig.toml"), "/proc")
     assert_one_line_error(run_rig("config", "init", "--sim", tmp_path), "folder")
