@@ -47,6 +47,10 @@ def register(sub) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="length of the recorded take (default 10)")
     p.add_argument("--views", type=int, default=None,
                    help="calibration views to keep (default: every view the simulated session offers, about 13 per camera + 13)")
+    p.add_argument("--gopro", type=int, nargs="?", const=2, default=None, metavar="N",
+                   help="instead: the two sources with N GoPros (default 2) as supervision cameras, on emulators of the Open "
+                        "GoPro API filming the scene: record, align the GoPros to the trigger pulses by the board's LED, "
+                        "validate, and compare the alignment with the simulator's truth")
     p.set_defaults(func=cmd_demo)
 
 
@@ -75,6 +79,10 @@ def _check_arguments(args: argparse.Namespace) -> None:
             raise ConfigError(f"{name} must be between {lo} and {hi} pixels, got {value}")
     if not (math.isfinite(args.seconds) and 0 < args.seconds <= 3600):
         raise ConfigError(f"--seconds must be more than 0 and at most 3600, got {args.seconds}")
+    if args.gopro is not None and not 1 <= args.gopro <= 8:
+        raise ConfigError(f"--gopro: between 1 and 8 GoPros, got {args.gopro}")
+    if args.gopro is not None and args.cameras != 6:
+        raise ConfigError("--gopro sets the rig's cameras itself (the two sources and the GoPros): leave out --cameras")
     if args.views is not None and args.views < 4:
         raise ConfigError(f"--views must be at least 4 (the solver needs 4 views of the board per camera), got {args.views}")
 
@@ -131,6 +139,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _check_arguments(args)
     out: Path = args.out
     _check_output(out)
+    if args.gopro is not None:
+        from rig.commands import _demo_gopro
+
+        return _demo_gopro.run(args, _run)
     data = sim_rig_config(n_cameras=args.cameras, width=args.width, height=args.height, fps=FPS)
     data["sim"].update({"loop_frames": 20})
     cfg = parse_config(data)

@@ -52,6 +52,20 @@ def test_demo_calibrates_records_and_validates_a_two_camera_rig(tmp_path):
     assert set(report["frames"]) == {"left", "right"}
 
 
+def test_demo_gopro_records_two_gopros_beside_the_sources_and_aligns_them(tmp_path):
+    """`rig demo --gopro`: two GoPro emulators through the gopro:// backend beside the triggered
+    sources; after `rig record align` every GoPro frame is in its true set (the simulator's truth)."""
+    out = tmp_path / "demo"
+    proc = run_rig("demo", "--gopro", "-o", out, "--seconds", 4, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    truth = [line for line in proc.stdout.splitlines() if "against the simulator's truth" in line]
+    assert len(truth) == 2 and all(" 0 in the wrong set" in line for line in truth), proc.stdout
+    report = json.loads((out / "take" / "alignment.json").read_text())
+    assert set(report["cameras"]) == {"sup1", "sup2"} and all(c["problem"] is None and c["placed"] > 20 for c in report["cameras"].values())
+    proc = run_rig("record", "validate", out / "take", "--json")
+    assert proc.returncode == 0 and json.loads(proc.stdout)["readable"] is True
+
+
 @pytest.mark.parametrize("argv, fragment", [
     (["--cameras", "1"], "--cameras"),
     (["--cameras", "65"], "--cameras"),
@@ -59,6 +73,9 @@ def test_demo_calibrates_records_and_validates_a_two_camera_rig(tmp_path):
     (["--seconds", "nan"], "--seconds"),
     (["--width", "0"], "--width"),
     (["--views", "2"], "--views"),
+    (["--gopro", "0"], "--gopro"),
+    (["--gopro", "9"], "--gopro"),
+    (["--gopro", "2", "--cameras", "4"], "--cameras"),
 ])
 def test_bad_arguments_are_refused_before_any_work(tmp_path, capsys, argv, fragment):
     start = time.monotonic()
