@@ -118,16 +118,17 @@ class LocalDaemonCamera(_DaemonCamera):
     # The daemon rings a doorbell (one datagram to this camera's socket) as it begins to copy each
     # frame into the ring: the reader blocks on it without polling the ring, and its wake-up (a
     # quarter of a millisecond on a small VM, whose idle CPU must be woken) runs while the frame is
-    # copied; it then waits out the rest of the copy (about 0.4 ms for 1280x720 RGB), yielding the
-    # CPU as it looks. The ring's write sequence stays the truth: a lost or late datagram costs at
+    # copied; it then copies the frame out band by band behind the writer (RingReader's streaming
+    # read), yielding the CPU while it waits for the next band. The ring's write sequence stays the truth: a lost or late datagram costs at
     # most the next wait.
     RENEW_S = 1.0
     SETTLE_S = 0.003  # the longest a rung reader looks for the frame before it waits again
 
     def _wait(self, reader: RingReader, k: int, timeout: float) -> bool:
+        """True once frame k is written or being written (the read then streams it: RingReader)."""
         end = time.monotonic() + timeout
         while True:
-            if reader.write_seq > k:
+            if reader.write_seq > k or reader.writing(k):
                 return True
             now = time.monotonic()
             if now >= end:
@@ -155,7 +156,7 @@ class LocalDaemonCamera(_DaemonCamera):
                 time.sleep(0.001)
             if rung or reader.writing(k):  # a frame is being copied in: it is there within a copy's time
                 settle = min(end, time.monotonic() + self.SETTLE_S)
-                while reader.write_seq <= k and time.monotonic() < settle:
+                while reader.write_seq <= k and not reader.writing(k) and time.monotonic() < settle:
                     time.sleep(0)
 
     def _attach(self) -> None:
