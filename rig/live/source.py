@@ -31,13 +31,21 @@ class Health:
 
 
 class SessionSource:
-    """Frame sets of a running rig (rig.capture.session.RigSession), left and right frames only."""
+    """Frame sets of a running rig (rig.capture.session.RigSession), left and right frames only.
+
+    Only the two sources are opened and grouped: the model renders from them alone, and capturing
+    the supervision cameras too would take CPU from the model (on a 2-core box, a sixth of it for a
+    simulated six-camera rig) for frames nobody looks at. The cameras keep the whole rig
+    (CameraConfig.rig), so a simulated one still shows the rig's scene from its own place."""
 
     def __init__(self, config, left: str, right: str, on_phase=None):
+        from dataclasses import replace
+
         from rig.capture.session import RigSession
 
         self.left, self.right = left, right
-        self.session = RigSession(config, on_phase=on_phase)
+        sources = [c for c in config.cameras if c.name in (left, right)]
+        self.session = RigSession(replace(config, cameras=sources), on_phase=on_phase)
         self.incomplete = 0
         self._lost: dict[str, str] = {}  # what is down now, by device
         self._seen_events = 0

@@ -49,6 +49,16 @@ def test_two_viewers_share_one_stage_1_per_frame_set(sim_live):
     assert status["ms"]["stage1"] > 0 and status["ms"]["view"] > 0 and status["latency_ms"]["p50"] > 0
 
 
+def test_only_the_two_sources_are_captured_and_every_camera_is_a_preset(sim_live):
+    """The model renders from left and right alone: the live session opens and groups only them (the
+    four supervision cameras of the six-camera rig cost the model CPU for nothing before), while every
+    calibrated camera stays a preset."""
+    engine = sim_live.engine
+    assert set(engine.source.session.cameras) == {"left", "right"}
+    assert set(engine.source.session.frames_delivered) == {"left", "right"}
+    assert {p["name"] for p in engine.presets()} == {"left", "sup1", "sup2", "sup3", "sup4", "right"}
+
+
 def test_a_viewer_that_takes_nothing_costs_the_model_nothing(sim_live):
     engine = sim_live.engine
     lazy = engine.add_viewer()
