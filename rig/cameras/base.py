@@ -48,6 +48,17 @@ class CameraStats:
         return d
 
 
+def free_running_problems(kind: str, settings) -> list[str]:
+    """What a camera that cannot be triggered and delivers decoded RGB (a GoPro, a webcam, a network
+    stream: `kind`) cannot take from its settings."""
+    out = []
+    if settings.trigger != "free":
+        out.append(f'{kind} cannot be triggered; set trigger = "free" (the take is aligned afterwards: rig record align)')
+    if settings.pixel_format not in ("RGB8", "Mono8"):
+        out.append(f"pixel_format must be RGB8 or Mono8 for {kind}, got {settings.pixel_format}")
+    return out
+
+
 def raise_problems(settings, uri: str, problems: list[str]) -> None:
     """Open-time form of a backend's `problems(uri, settings)` (the same checks `rig config check`
     makes): the first problem, as one line naming the camera."""

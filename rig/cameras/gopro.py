@@ -21,7 +21,7 @@ import threading
 from typing import Optional
 from urllib.parse import parse_qs, urlsplit
 
-from rig.cameras.base import Camera, DeviceInfo, raise_problems
+from rig.cameras.base import Camera, DeviceInfo, free_running_problems, raise_problems
 from rig.cameras.gopro_http import (DEFAULT_WEBCAM_PORT, GoProClient, LinkEvent, discover_mdns, discover_usb,
                                     _check_serial)
 from rig.cameras.video_reader import VideoReader
@@ -77,12 +77,9 @@ def problems(uri: str, settings) -> list[str]:
         parse_uri(uri)
     except ConfigError as exc:
         out.append(str(exc))
-    if settings.trigger != "free":
-        out.append('a GoPro cannot be triggered; set trigger = "free" (the take is aligned afterwards: rig record align)')
+    out += free_running_problems("a GoPro", settings)
     if (settings.width, settings.height) not in SIZES:
         out.append(f"the webcam stream is {', '.join(f'{w}x{h}' for w, h in SIZES)}; got {settings.width}x{settings.height}")
-    if settings.pixel_format not in ("RGB8", "Mono8"):
-        out.append(f"pixel_format must be RGB8 or Mono8 for a GoPro, got {settings.pixel_format}")
     return out
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from urllib.parse import urlsplit
 
-from rig.cameras.base import DeviceInfo, raise_problems
+from rig.cameras.base import DeviceInfo, free_running_problems, raise_problems
 from rig.cameras.video_reader import ReaderCamera, VideoReader
 from rig.errors import ConfigError
 
@@ -47,10 +47,7 @@ def problems(uri: str, settings) -> list[str]:
         inner_url(uri)
     except ConfigError as exc:
         out.append(str(exc))
-    if settings.trigger != "free":
-        out.append('a network stream cannot be triggered; set trigger = "free" (the take is aligned afterwards: rig record align)')
-    if settings.pixel_format not in ("RGB8", "Mono8"):
-        out.append(f"pixel_format must be RGB8 or Mono8 for a stream, got {settings.pixel_format}")
+    out += free_running_problems("a network stream", settings)
     return out
 
 

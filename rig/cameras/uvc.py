@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Optional
 from urllib.parse import parse_qs, urlsplit
 
-from rig.cameras.base import DeviceInfo, raise_problems
+from rig.cameras.base import DeviceInfo, free_running_problems, raise_problems
 from rig.cameras.video_reader import ReaderCamera, VideoReader
 from rig.errors import ConfigError, DeviceError, DeviceNotFound
 
@@ -97,10 +97,7 @@ def problems(uri: str, settings) -> list[str]:
         parse_uri(uri)
     except ConfigError as exc:
         out.append(str(exc))
-    if settings.trigger != "free":
-        out.append('a webcam cannot be triggered; set trigger = "free" (the take is aligned afterwards: rig record align)')
-    if settings.pixel_format not in ("RGB8", "Mono8"):
-        out.append(f"pixel_format must be RGB8 or Mono8 for a webcam, got {settings.pixel_format}")
+    out += free_running_problems("a webcam", settings)
     return out
 
 

@@ -92,6 +92,7 @@ def run(args: argparse.Namespace, run_step) -> int:
     from rig.cameras.sim import SIM_EPOCH_NS
     from rig.config import dump_config, load_config, parse_config
     from rig.commands.demo import _check_space, _mb, _written
+    from rig.commands.record import alignment_lines
     from simulator.gopro.scene import scene_emulators, stream_start
 
     out: Path = args.out
@@ -132,14 +133,8 @@ def run(args: argparse.Namespace, run_step) -> int:
         al = None
     period_ms = 1e3 / cfg.trigger.rate_hz
     if al is not None:
-        for name, c in al["cameras"].items():
-            if c["problem"]:
-                print(f"     {name}: NOT aligned: {c['problem']}")
-                continue
-            rate = f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else ""
-            print(f"     {name}: {c['placed']} of {c['frames']} frames placed ({c['moved']} moved from the live grouping), "
-                  f"uncertainty {c['error_periods']:.3f} periods ({c['error_periods'] * period_ms:.2f} ms){rate}, "
-                  f"latency {c['latency_ms']:.0f} ms")
+        for line in alignment_lines(al):
+            print(f"     {line}")
 
     val = run_step(["record", "validate", str(take)])
     print(f"5/5  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets")

@@ -118,6 +118,20 @@ def _print_repair(r: dict) -> None:
     print(f"next: rig record validate {r['path']}")
 
 
+def alignment_lines(r: dict) -> list[str]:
+    """A line per camera of an alignment report (rig.storage.align.align)."""
+    period_ms = 1e3 / r["rate_hz"]
+    lines = []
+    for name, c in r["cameras"].items():
+        if c["problem"]:
+            lines.append(f"{name}: NOT aligned: {c['problem']}")
+            continue
+        rate = f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else " (one flash: nominal clock rate)"
+        lines.append(f"{name}: {c['placed']} of {c['frames']} frames placed ({c['moved']} moved to another set), uncertainty "
+                     f"{c['error_periods']:.3f} frame periods ({c['error_periods'] * period_ms:.2f} ms){rate}, latency {c['latency_ms']:.1f} ms")
+    return lines
+
+
 def _align(args) -> int:
     from rig.commands._output import emit_json
     from rig.storage.align import align
@@ -126,14 +140,8 @@ def _align(args) -> int:
     if args.json:
         emit_json(r)
     else:
-        period_ms = 1e3 / r["rate_hz"]
-        for name, c in r["cameras"].items():
-            if c["problem"]:
-                print(f"  {name}: NOT aligned: {c['problem']}")
-                continue
-            rate = f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else " (one flash: nominal clock rate)"
-            print(f"  {name}: {c['placed']} of {c['frames']} frames placed ({c['moved']} moved to another set), uncertainty "
-                  f"{c['error_periods']:.3f} frame periods ({c['error_periods'] * period_ms:.2f} ms){rate}, latency {c['latency_ms']:.1f} ms")
+        for line in alignment_lines(r):
+            print(f"  {line}")
         if r["backup"]:
             print(f"the original index is kept as {r['backup']}; the report is {Path(r['path']) / 'alignment.json'}")
     failed = [n for n, c in r["cameras"].items() if c["problem"]]
