@@ -23,7 +23,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("common", "calibration", "sync", "simulator", "inference", "rig")
 LAYER = {"common": 0, "calibration": 1, "sync": 1, "simulator": 2, "inference": 3, "rig": 4}
-SIMULATOR_GATES = ("rig.cameras.sim", "rig.commands.demo", "rig.commands.sim")
+SIMULATOR_GATES = ("rig.cameras.sim", "rig.commands.demo", "rig.commands._demo_gopro", "rig.commands.sim")
 LIVE_PATH = ("rig.cameras", "rig.capture", "rig.storage", "rig.live", "rig.config", "rig.errors", "inference.runtime")
 HEAVY = ("torch", "torchvision", "onnx", "onnxscript")  # training and export only
 

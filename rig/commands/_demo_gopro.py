@@ -91,7 +91,7 @@ def run(args: argparse.Namespace, run_step) -> int:
     emulators this process serves answer it."""
     from rig.cameras.sim import SIM_EPOCH_NS
     from rig.config import dump_config, load_config, parse_config
-    from rig.commands.demo import _check_space, _mb, _written
+    from rig.commands._demo_disk import check_space, mb, written
     from rig.commands.record import alignment_lines
     from simulator.gopro.scene import scene_emulators, stream_start
 
@@ -101,7 +101,7 @@ def run(args: argparse.Namespace, run_step) -> int:
     frame_src = args.width * args.height * 3
     frame_gopro = GOPRO_SIZE[0] * GOPRO_SIZE[1] * 3
     estimate = int((args.seconds + 1) * (30.0 * 2 * frame_src + GOPRO_FPS * n * frame_gopro))
-    _check_space(out, estimate)
+    check_space(out, estimate)
     out.mkdir(parents=True, exist_ok=True)
     rig_file = out / "rig.toml"
     rig_file.write_text(dump_config(parse_config(data)))
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace, run_step) -> int:
     print(f"1/5  simulated rig: left and right at {args.width}x{args.height}, hardware-triggered by the emulated board at 30 Hz; "
           f"{n} GoPro{'s' if n > 1 else ''} ({', '.join(c.name for c in gopros)}) free-running at {GOPRO_SIZE[0]}x{GOPRO_SIZE[1]}, "
           f"{GOPRO_FPS:g} fps; the board's LED above the stage  ->  {rig_file}")
-    print(f"     the demo writes about {_mb(estimate)} into {out}")
+    print(f"     the demo writes about {mb(estimate)} into {out}")
 
     emulators = scene_emulators(cfg, SIM_EPOCH_NS)
     take = out / "take"
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace, run_step) -> int:
                   f"offset error at most {err}")
             ok = ok and t["frames"] > 0 and t["wrong_set"] == 0
     print(f"\nthe take: {take}/  (index.jsonl with each GoPro frame's pulse and offset; the index before alignment kept beside it)")
-    print(f"disk: {_mb(_written(out))} written into {out}")
+    print(f"disk: {mb(written(out))} written into {out}")
     print("next: on a real rig, calibrate the GoPros with the sources (`rig calibrate capture`, the board in view of every "
           "camera) and train on such takes (`rig train`); docs/sequence-format.md says how aligned frames are stored")
     return 0 if ok else 1

@@ -105,29 +105,8 @@ def disk_estimate(args: argparse.Namespace, calibration_views: int) -> dict[str,
     return {"take": take, "calibration_views": views, "total": take + views}
 
 
-def _check_space(out: Path, need: int) -> None:
-    import shutil
-
-    from rig.errors import ConfigError
-
-    base = out.absolute()
-    while not base.exists():
-        base = base.parent
-    free = shutil.disk_usage(base).free
-    if free < need * 1.1:
-        raise ConfigError(f"{out}: the demo writes about {_mb(need)} but {base} has {_mb(free)} free; "
-                          "free some space, or choose a shorter take (--seconds) or fewer cameras")
-
-
-def _mb(n: int) -> str:
-    return f"{n / 1e6:.0f} MB" if n >= 10e6 else f"{n / 1e6:.1f} MB"
-
-
-def _written(folder: Path) -> int:
-    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
+    from rig.commands._demo_disk import check_space, mb, written
     from calibration.boards import board_from_dict
     from calibration.camera import RigCalibration
     from calibration.compare import describe, errors_against_truth
@@ -149,7 +128,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     session = CalibrationSession(cfg, board_from_dict(SIM_RIG_BOARD))  # the stations the capture will see
     views = session.sets if args.views is None else min(args.views, session.sets)
     estimate = disk_estimate(args, views)
-    _check_space(out, estimate["total"])
+    check_space(out, estimate["total"])
     out.mkdir(parents=True, exist_ok=True)
 
     # 1. the rig
@@ -158,8 +137,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     board_file = out / "board.toml"
     board_file.write_text(board_toml(SIM_RIG_BOARD))
     print(f"1/5  simulated rig: {args.cameras} cameras at {args.width}x{args.height}, emulated trigger board  ->  {rig_file}")
-    print(f"     the demo writes about {_mb(estimate['total'])} into {out} (take {_mb(estimate['take'])}, "
-          f"calibration views {_mb(estimate['calibration_views'])})")
+    print(f"     the demo writes about {mb(estimate['total'])} into {out} (take {mb(estimate['take'])}, "
+          f"calibration views {mb(estimate['calibration_views'])})")
 
     # 2. calibration
     print(f"2/5  calibrating: {session.describe()}")
@@ -221,7 +200,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"     orbit video, left to right over the take: {orbit['output']} ({orbit['frames']} frames, {orbit['codec']}); "
               f"strip (left | t = 0.25, 0.5, 0.75 | right): {strip['file']}")
     print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")
-    print(f"disk: {_mb(_written(out))} written into {out} (take {_mb(_written(take))}, calibration views {_mb(_written(views_dir))})")
+    print(f"disk: {mb(written(out))} written into {out} (take {mb(written(take))}, calibration views {mb(written(views_dir))})")
     print(f"live: `rig live -c {rig_file}` runs this rig through the model and serves the novel view at "
           f"http://{cfg.live.host}:{cfg.live.port}/ (Ctrl-C stops it)")
     print(f"next: `rig record validate {take}`; read it for training with rig.storage.dataset.Sequence('{take}');"
