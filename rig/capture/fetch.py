@@ -85,7 +85,10 @@ def _fetch_camera(manifest: MediaManifest, entry: CardCamera, say: Callable[[str
             size = f"{f.size / 1e6:.1f} MB" if f.size is not None else "size unknown"
             say(f"{entry.camera}: downloading {f.camera_path} ({size}) into {f.file}")
             t0 = time.monotonic()
-            path = client.download(MediaItem(f.directory, f.name, f.size, None, None), manifest.folder(entry.camera))
+            try:
+                path = client.download(MediaItem(f.directory, f.name, f.size, None, None), manifest.folder(entry.camera))
+            except DeviceError as exc:  # the client's own advice (download again) is what fetch is for
+                raise DeviceError(str(exc).removesuffix("; download again to resume")) from None
             f.seconds = round(time.monotonic() - t0, 3)
             f.size = path.stat().st_size
             f.state = DONE

@@ -177,8 +177,8 @@ def _fetch(args) -> int:
                   + (f"; {c['problem']}" if c["problem"] else ""))
     failed = [(n, c["problem"]) for n, c in r["cameras"].items() if c["problem"] or c["state"] != "done"]
     if failed:
-        print(f"rig: error: {root}: {failed[0][0]}: {failed[0][1] or 'files left to download'}; run `rig record fetch "
-              f"{root}` again once the camera answers", file=sys.stderr)
+        print(f"rig: error: {root}: {failed[0][0]}: {failed[0][1] or 'files left to download'} (run `rig record fetch "
+              f"{root}` again once the camera answers)", file=sys.stderr)
         return 1
     return 0
 
