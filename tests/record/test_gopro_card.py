@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rig.cameras.gopro import card_client
 from rig.cameras.sim import SIM_EPOCH_NS, sim_rig_config
 from rig.cli import main
 from rig.config import dump_config, load_config, parse_config
@@ -47,24 +48,44 @@ def _run(capsys, *argv) -> tuple[int, str, str]:
 
 
 @pytest.fixture(scope="module")
-def take(tmp_path_factory):
-    """Records the take (the first GoPro's download cut), says what the take held then, fetches the
-    rest with the emulators still up, and keeps the emulators' truth."""
-    tmp = tmp_path_factory.mktemp("card")
+def cache(tmp_path_factory):
+    """One loop cache for the module's takes (the scene is rendered once per camera size)."""
     mp = pytest.MonkeyPatch()
-    mp.setenv("RIG_CACHE_DIR", str(tmp / "cache"))
-    data = sim_rig_config(n_cameras=4, width=640, height=360)
+    mp.setenv("RIG_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
+    yield
+    mp.undo()
+
+
+def _card_rig(tmp: Path, fps_list) -> tuple:
+    """Two sim sources and a card-recording GoPro per rate in `fps_list` (1080p), the LED in view."""
+    data = sim_rig_config(n_cameras=2 + len(fps_list), width=640, height=360)
     data["sim"].update(led=True, loop_frames=6)
     gopros = [c for c in data["cameras"] if c["role"] == "supervision"]
-    for i, (cam, fps) in enumerate(zip(gopros, GOPRO_FPS)):
+    for i, (cam, fps) in enumerate(zip(gopros, fps_list)):
         cam.update(uri=f"gopro://C35013246455{60 + i}@127.0.0.1:{_free_port()}?record=card", width=1920, height=1080,
                    trigger="free", fps=fps)
         for key in ("sim", "exposure_us", "gain", "pixel_format"):
             cam.pop(key, None)
     rig_file = tmp / "rig.toml"
     rig_file.write_text(dump_config(parse_config(data)))
-    cfg = load_config(rig_file, check_calibration=False)
-    names = [c["name"] for c in gopros]
+    return load_config(rig_file, check_calibration=False), [c["name"] for c in gopros], rig_file
+
+
+def _pulse_axis(root: Path, cfg) -> tuple[float, float]:
+    """(ns per pulse, simulated ns of pulse 0) from the hardware-triggered left camera's frames."""
+    rows = [json.loads(line) for line in (root / INDEX).read_text().splitlines()]
+    hw = np.array([(r["trigger"], r["frames"]["left"]["device_ts_ns"]) for r in rows if r["frames"]["left"]], np.float64)
+    latency_ns = cfg.camera("left").sim.get("latency_us", 0) * 1e3
+    ns_per_pulse, at_zero = np.polyfit(hw[:, 0], hw[:, 1] - latency_ns, 1)
+    return ns_per_pulse, at_zero
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory, cache):
+    """Records the take (the first GoPro's download cut), says what the take held then, fetches the
+    rest with the emulators still up, and keeps the emulators' truth."""
+    tmp = tmp_path_factory.mktemp("card")
+    cfg, names, rig_file = _card_rig(tmp, GOPRO_FPS)
     emulators = scene_emulators(cfg, SIM_EPOCH_NS)
     out = {"cfg": cfg, "names": names, "root": tmp / "take", "rig": rig_file}
     try:
@@ -82,7 +103,6 @@ def take(tmp_path_factory):
     finally:
         for e in emulators:
             e.stop()
-        mp.undo()
     return out
 
 
@@ -148,10 +168,7 @@ def test_align_places_each_video_on_the_pulses(take, capsys):
     assert code == 0, err
     report = json.loads(out)
     assert report["cameras"] == {} and report["backup"] is None  # the sources were triggered: the index is as it was
-    rows = [json.loads(line) for line in (root / INDEX).read_text().splitlines()]
-    hw = np.array([(r["trigger"], r["frames"]["left"]["device_ts_ns"]) for r in rows if r["frames"]["left"]], np.float64)
-    latency_ns = take["cfg"].camera("left").sim.get("latency_us", 0) * 1e3
-    ns_per_pulse, at_zero = np.polyfit(hw[:, 0], hw[:, 1] - latency_ns, 1)
+    ns_per_pulse, at_zero = _pulse_axis(root, take["cfg"])
     videos = {v["camera"]: v for v in report["videos"]}
     assert set(videos) == set(names)
     for name in names:
@@ -171,6 +188,67 @@ def test_align_places_each_video_on_the_pulses(take, capsys):
         assert len([f for f in v["flashes"] if "onset_s" in f]) == 2
     saved = json.loads((root / "alignment.json").read_text())
     assert saved["videos"] == report["videos"]
+
+
+def test_an_interrupted_take_keeps_the_card_video_for_fetch(tmp_path, cache, capsys):
+    """`rig record` stopped (SIGTERM, as Ctrl-C) soon after the first flash: the shutter is released,
+    nothing is downloaded, and `rig record fetch` finds the take's video by what the card gained since
+    the press; align places it by the one flash (nominal rate)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    cfg, names, rig_file = _card_rig(tmp_path, (GOPRO_FPS[1],))
+    root = tmp_path / "take"
+    emulators = scene_emulators(cfg, SIM_EPOCH_NS)
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def stop_after_first_flash():
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            flashes = root / "flashes.jsonl"
+            if flashes.is_file() and flashes.read_text().strip():
+                time.sleep(0.5)  # the flash's last frames
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+            time.sleep(0.05)
+
+    try:
+        older = card_client(cfg.camera(names[0]).uri).connect()  # a clip on the card from before: not the take's
+        older.shutter_start()
+        time.sleep(0.3)
+        older.shutter_stop()
+        older.wait_ready()
+        older.close()
+        watcher = threading.Thread(target=stop_after_first_flash, daemon=True)
+        watcher.start()
+        code, out, err = _run(capsys, "record", "-c", rig_file, "-o", root, "--seconds", "60", "--json")
+        watcher.join()
+        rec = json.loads(out)
+        assert code == 1 and rec["stopped_by"] == "interrupt" and rec["flashes"] == 1, (rec, err)
+        assert len(err.strip().splitlines()) == 1 and "rig record fetch" in err, err
+        manifest = json.loads((root / MANIFEST).read_text())["cameras"][names[0]]
+        assert manifest["files"] is None and manifest["released_host_ns"] is not None, manifest
+        assert len(manifest["card_before"]) == 1
+        assert not emulators[0].state.encoding  # the take released the shutter
+        code, out, err = _run(capsys, "record", "fetch", root)
+        assert code == 0, err
+        card = {m.name: m.size for m in emulators[0].media.files()}
+        truth = emulators[0].recordings[-1]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        for e in emulators:
+            e.stop()
+    files = json.loads((root / MANIFEST).read_text())["cameras"][names[0]]["files"]
+    assert [(Path(f["file"]).name, f["size"], f["state"]) for f in files] == [(truth.file.name, card[truth.file.name], "done")]
+    code, out, err = _run(capsys, "record", "align", root, "--json")
+    assert code == 0, err
+    (v,) = json.loads(out)["videos"]
+    ns_per_pulse, at_zero = _pulse_axis(root, cfg)
+    err0 = (v["trigger_at_frame0"] - (truth.t0 * 1e9 - at_zero) / ns_per_pulse) * ns_per_pulse * truth.fps / 1e9
+    print(f"interrupted take: {truth.frames} frames; frame 0 off by {err0:+.4f} frames (one flash, nominal rate)")
+    assert v["rate_ppm"] is None and abs(err0) < 0.1, v
 
 
 def test_fetch_and_align_bad_input_say_one_line(take, tmp_path, capsys):
