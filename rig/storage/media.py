@@ -122,3 +122,31 @@ class MediaManifest:
 def take_file(camera: str, name: str) -> str:
     """Where a camera's file goes in the take (relative to it)."""
     return f"{MEDIA}/{camera}/{name}"
+
+
+def media_problems(root: str | Path) -> tuple[list[str], list[str]]:
+    """(errors, warnings) of a take's card videos for `rig record validate`: a file the manifest says
+    is done must be there at its size (else an error); what is still to download is a warning."""
+    root = Path(root)
+    if not (root / MANIFEST).is_file():
+        return [], []
+    try:
+        manifest = MediaManifest.load(root)
+    except SequenceError as exc:
+        return [str(exc)], []
+    errors, warnings = [], []
+    for name, cam in manifest.cameras.items():
+        pending = [f for f in cam.files or [] if f.state != DONE]
+        if cam.files is None or pending:
+            what = "its videos are not listed yet" if cam.files is None else f"{len(pending)} video(s) not downloaded yet"
+            warnings.append(f"{MANIFEST}: {name}: {what} (`rig record fetch {root}`)")
+        for f in cam.files or []:
+            if f.state != DONE:
+                continue
+            path = root / f.file
+            size = path.stat().st_size if path.is_file() else None
+            if size is None:
+                errors.append(f"{f.file}: missing ({MANIFEST} says it was downloaded)")
+            elif f.size is not None and size != f.size:
+                errors.append(f"{f.file}: {size} bytes, {MANIFEST} says {f.size}")
+    return errors, warnings

@@ -286,6 +286,13 @@ def test_fetch_and_align_bad_input_say_one_line(take, tmp_path, capsys):
     got, out, err = _run(capsys, "record", "align", copy)
     print(out + err)
     assert got == 1 and len(err.strip().splitlines()) == 1 and "not downloaded yet" in err, err
+    # validate: a video still to fetch is a warning; a downloaded one cut short is an error
+    got, out, err = _run(capsys, "record", "validate", copy)
+    assert got == 0 and f"{names[1]}: 1 video(s) not downloaded yet" in out, (out, err)
+    done = copy / manifest["cameras"][names[0]]["files"][0]["file"]
+    done.write_bytes(done.read_bytes()[:-1000])
+    got, out, err = _run(capsys, "record", "validate", copy)
+    assert got == 1 and f"{done.relative_to(copy)}: " in out and "media.json says" in out, (out, err)
 
 
 def test_config_check_says_what_is_wrong_with_a_card_camera(tmp_path, capsys):
