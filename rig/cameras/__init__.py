@@ -11,7 +11,7 @@ from types import ModuleType
 
 from rig.errors import BackendError
 
-_NOT_BACKENDS = {"base", "pixels", "gopro_http", "video_reader"}  # helpers, not backends
+_NOT_BACKENDS = {"base", "pixels", "gopro_http", "gopro_card", "video_reader"}  # helpers, not backends
 
 
 def _backend_modules() -> dict[str, str]:
@@ -41,6 +41,20 @@ def open_camera(settings):
     if "://" not in uri:
         raise BackendError(f"{uri!r} is not a camera URI (expected scheme://address)")
     return backend(uri.split("://", 1)[0]).open(uri, settings)
+
+
+def records_to_card(settings) -> bool:
+    """True for a camera that records to its own card instead of giving live frames (a GoPro with
+    `?record=card`): its backend says so with `records_to_card(uri)`; the session opens it but groups
+    no frames of it, and `rig record` brings its video into the take afterwards."""
+    uri = settings.uri
+    if "://" not in uri:
+        return False
+    try:
+        check = getattr(backend(uri.split("://", 1)[0]), "records_to_card", None)
+    except BackendError:
+        return False
+    return bool(check(uri)) if check is not None else False
 
 
 def discover_all(errors: list | None = None) -> list:

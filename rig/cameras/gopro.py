@@ -1,8 +1,11 @@
-"""`gopro://SERIAL`: a GoPro on USB, live frames from its webcam mode.
+"""`gopro://SERIAL`: a GoPro on USB, live frames from its webcam mode, or a video on its card.
 
     gopro://C3501324645504                    the camera's USB address from its serial (172.2X.1YZ.51:8080)
     gopro://C3501324645504@127.0.0.1:8080     an explicit control address (a camera on another link, an emulator)
     gopro://C3501324645504?port=8570          the UDP port of its stream (default 8554 + the serial's last two digits)
+    gopro://C3501324645504?record=card        record to the camera's card instead (rig.cameras.gopro_card):
+                                              no live frames; `rig record` presses the shutter for the take and
+                                              downloads the video into it (`record=webcam`, the default: live frames)
 
 Opening takes wired USB control, checks the API and waits for the camera to be ready
 (rig.cameras.gopro_http); `start()` starts the webcam stream (MPEG-TS over UDP to this host, one
@@ -22,6 +25,7 @@ from typing import Optional
 from urllib.parse import parse_qs, urlsplit
 
 from rig.cameras.base import Camera, DeviceInfo, free_running_problems, raise_problems
+from rig.cameras.gopro_card import GoProCardCamera, card_problems
 from rig.cameras.gopro_http import (DEFAULT_WEBCAM_PORT, GoProClient, LinkEvent, discover_mdns, discover_usb,
                                     _check_serial)
 from rig.cameras.video_reader import VideoReader
@@ -30,6 +34,7 @@ from rig.errors import CameraDisconnected, ConfigError, DeviceError
 SCHEME = "gopro"
 SIZES = {(1920, 1080): 1080, (1280, 720): 720, (848, 480): 480}  # webcam resolutions, by frame size
 STALL_S = 2.0  # a stream silent this long is lost
+RECORD_MODES = ("webcam", "card")
 
 
 def discover() -> list[DeviceInfo]:
@@ -41,15 +46,24 @@ def discover() -> list[DeviceInfo]:
     return list(found.values())
 
 
-def open(uri: str, settings) -> "GoProCamera":  # noqa: A001 - the backend contract's name
+def open(uri: str, settings) -> Camera:  # noqa: A001 - the backend contract's name
+    if records_to_card(uri):
+        raise_problems(settings, uri, problems(uri, settings))
+        return GoProCardCamera(uri, settings, card_client(uri))
     return GoProCamera(uri, settings)
+
+
+def card_client(uri: str, **options) -> GoProClient:
+    """A client (not connected) for the camera a URI names (the control address; the stream port aside)."""
+    serial, base_url, _ = parse_uri(uri)
+    return GoProClient(serial, base_url=base_url, **options)
 
 
 def parse_uri(uri: str) -> tuple[str, Optional[str], int]:
     """(serial, control base URL or None for the USB address, UDP port of the stream)."""
     parts = urlsplit(uri)
     if parts.scheme != SCHEME or not parts.netloc:
-        raise ConfigError(f"{uri}: a GoPro URI is gopro://SERIAL[@HOST:PORT][?port=UDP], e.g. gopro://C3501324645504")
+        raise ConfigError(f"{uri}: a GoPro URI is gopro://SERIAL[@HOST:PORT][?port=UDP or ?record=card], e.g. gopro://C3501324645504")
     serial, _, address = parts.netloc.partition("@")
     serial = _check_serial(serial)
     base_url = None
@@ -58,9 +72,14 @@ def parse_uri(uri: str) -> tuple[str, Optional[str], int]:
             raise ConfigError(f"{uri}: the control address must be HOST:PORT, got {address!r}")
         base_url = f"http://{address}"
     query = parse_qs(parts.query)
-    unknown = set(query) - {"port"}
+    unknown = set(query) - {"port", "record"}
     if unknown:
-        raise ConfigError(f"{uri}: unknown URI option {', '.join(sorted(unknown))} (allowed: port)")
+        raise ConfigError(f"{uri}: unknown URI option {', '.join(sorted(unknown))} (allowed: port, record)")
+    record = query.get("record", ["webcam"])[-1]
+    if record not in RECORD_MODES:
+        raise ConfigError(f"{uri}: record must be {' or '.join(RECORD_MODES)} (live frames, or a video on the card), got {record!r}")
+    if record == "card" and "port" in query:
+        raise ConfigError(f"{uri}: a camera that records to its card streams nothing: drop port=")
     try:
         port = int(query["port"][0]) if "port" in query else DEFAULT_WEBCAM_PORT + int(serial[-2:])
     except ValueError:
@@ -70,6 +89,11 @@ def parse_uri(uri: str) -> tuple[str, Optional[str], int]:
     return serial, base_url, port
 
 
+def records_to_card(uri: str) -> bool:
+    """True for `?record=card`: the camera records its video to its card (no live frames)."""
+    return parse_qs(urlsplit(uri).query).get("record", ["webcam"])[-1] == "card"
+
+
 def problems(uri: str, settings) -> list[str]:
     """What keeps these settings from working with a GoPro (`rig config check` and opening ask)."""
     out = []
@@ -77,6 +101,8 @@ def problems(uri: str, settings) -> list[str]:
         parse_uri(uri)
     except ConfigError as exc:
         out.append(str(exc))
+    if records_to_card(uri):
+        return out + card_problems(settings)
     out += free_running_problems("a GoPro", settings)
     if (settings.width, settings.height) not in SIZES:
         out.append(f"the webcam stream is {', '.join(f'{w}x{h}' for w, h in SIZES)}; got {settings.width}x{settings.height}")

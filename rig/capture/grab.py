@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from common.files import atomic_path
-from rig.cameras import open_camera
+from rig.cameras import open_camera, records_to_card
 from rig.capture.session import RigSession, prerender_note
 from rig.config import RigConfig
 from rig.errors import ConfigError, DeviceError, RigError, StorageError
@@ -104,18 +104,23 @@ def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0,
     out_dir = Path(out_dir)
     if (out_dir / INDEX).exists():
         raise ConfigError(f"{out_dir}: already holds a grab; choose a new folder (nothing was overwritten)")
+    live = [c for c in cfg.cameras if not records_to_card(c)]  # a camera recording to its card has no frames to grab
+    if len(live) < len(cfg.cameras) and notes is not None:
+        notes(f"not grabbing {', '.join(c.name for c in cfg.cameras if c not in live)}: records to its card, no live frames")
+    if not live:
+        raise ConfigError("every camera of the rig records to its card: there are no live frames to grab")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        for c in cfg.cameras:
+        for c in live:
             (out_dir / c.name).mkdir(exist_ok=True)
     except OSError as exc:
         raise StorageError(f"{out_dir}: cannot create output folder ({exc.strerror})") from None
     result = GrabResult(out_dir)
-    if any(c.trigger == "hardware" for c in cfg.cameras):
+    if any(c.trigger == "hardware" for c in live):
         return _grab_with_board(cfg, n, out_dir, result, notes)
     cameras = []
     try:
-        for c in cfg.cameras:  # open all first: a bad URI fails before anything is written
+        for c in live:  # open all first: a bad URI fails before anything is written
             cameras.append(open_camera(c))
         note = prerender_note({cam.name: cam for cam in cameras})
         if note and notes is not None:
@@ -158,7 +163,8 @@ def _grab_with_board(cfg: RigConfig, n: int, out_dir: Path, result: GrabResult,
                      notes: Optional[Callable[[str], None]]) -> GrabResult:
     """Hardware-triggered cameras: a train of N pulses from the rig's trigger board."""
     for c in cfg.cameras:
-        result.cameras[c.name] = CameraResult()
+        if not records_to_card(c):
+            result.cameras[c.name] = CameraResult()
     index = _Index(out_dir / INDEX)
     write_error: Optional[StorageError] = None
     try:

@@ -1,4 +1,8 @@
-"""`rig record`: run the rig in sync and write every FrameSet to a sequence folder."""
+"""`rig record`: run the rig in sync and write every FrameSet to a sequence folder.
+
+Cameras that record to their own card (a GoPro with `?record=card`) are not in the sets: their
+shutters are pressed once the take runs and released when it ends (rig.capture.cards), and their
+videos are downloaded into the take's `media/` folder afterwards (rig.capture.fetch)."""
 from __future__ import annotations
 
 import json
@@ -9,10 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
+from rig.cameras import records_to_card
 from rig.config import RigConfig
 from rig.errors import ConfigError
 from rig.progress import StatusLine, rate, rate_text
 from rig.cameras.sim import take_truth
+from rig.capture.cards import CardShutters
 from rig.storage.layout import FLASHES
 from rig.storage.recorder import SequenceWriter
 
@@ -66,6 +72,7 @@ class RecordResult:
     errors: list[str] = field(default_factory=list)
     stopped_by: str = "done"
     flashes: int = 0
+    media: Optional[dict] = None  # card cameras: what rig.capture.fetch reported
 
     @property
     def frames_lost(self) -> dict[str, int]:
@@ -86,6 +93,7 @@ class RecordResult:
             "cpu_percent": round(100.0 * self.cpu_s / self.seconds, 1) if self.seconds else 0.0,
             "stopped_by": self.stopped_by,
             "flashes": self.flashes,
+            "media": self.media,
             "errors": self.errors,
         }
 
@@ -107,8 +115,13 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
         calibration = cfg.resolve(cfg.calibration)
         if not calibration.is_file():
             raise ConfigError(f"rig.calibration: {calibration} does not exist (calibrate with `rig calibrate run`, or remove the key)")
-    rate = cfg.trigger.rate_hz if cfg.trigger else max(c.fps for c in cfg.cameras)
-    writer = SequenceWriter(out, cfg.cameras, rig_name=cfg.name, rate_hz=rate, config_file=cfg.path,
+    live = [c for c in cfg.cameras if not records_to_card(c)]  # the cameras of the sets
+    cards = [c.name for c in cfg.cameras if records_to_card(c)]
+    if not live:
+        raise ConfigError("every camera of the rig records to its card: a take needs at least one camera with live "
+                          "frames (its sets and pulses are what the videos are aligned to)")
+    rate = cfg.trigger.rate_hz if cfg.trigger else max(c.fps for c in live)
+    writer = SequenceWriter(out, live, rig_name=cfg.name, rate_hz=rate, config_file=cfg.path,
                             calibration_file=calibration, extra=take_truth(cfg))
     result = RecordResult(Path(out))
     cpu0 = time.process_time()
@@ -116,6 +129,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     t_first: Optional[float] = None
     session = None
     flasher = None
+    shutters = None
     if flash is None:
         flash = cfg.trigger is not None and any(c.trigger == "free" for c in cfg.cameras)
     rate_hz = rate
@@ -128,40 +142,51 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
             # A board rig records a train of exactly N pulses; otherwise the session is stopped when
             # enough is recorded, and every set still in flight is written before the end.
             session.start(pulses=sets if (sets is not None and session.board is not None) else 0)
-            if flash and session.board is not None:
-                flasher = _Flasher(session, Path(out))
-                length = seconds if seconds is not None else sets / rate_hz
-                # the first flash once every free-running camera delivers (a GoPro's stream takes a while
-                # to start), the second near the end
-                waiting_for = {c.name for c in cfg.cameras if c.trigger == "free"}
-                flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
-            for fs in _sets(session, lambda: seconds is not None and t_first is not None and time.monotonic() - t_first >= seconds):
-                if not writer.write(fs):
-                    result.stopped_by = "storage"
-                    session.stop()
-                    break
-                result.sets += 1
-                if t_first is None:
-                    t_first = time.monotonic()  # the take starts with its first set, after the clock warm-up
-                    cpu0 = time.process_time()
-                elapsed = time.monotonic() - t_first
-                if flasher is not None and waiting_for:
-                    waiting_for -= {n for n, f in fs.frames.items() if f is not None}
-                    if not waiting_for:  # every free-running camera delivers: the first flash is due
-                        first = elapsed + FLASH_AT_S
-                        flash_times = [first] + [t for t in flash_times[1:] if t > first + 1.0]
-                while flasher is not None and not waiting_for and flash_times and elapsed >= flash_times[0]:
-                    flash_times.pop(0)
-                    flasher.fire()
-                if status is not None:
-                    status.update(_status_text(result, writer, session, elapsed, out))
-                done = (sets is not None and result.sets >= sets) or (seconds is not None and elapsed >= seconds)
-                if done or session.train_done.is_set():
-                    session.stop()  # flushes the last sets; the loop writes them and ends
-            session_stats = session.camera_stats()
-            result.errors.extend(session.errors())
-            if flasher is not None:
-                flasher.join()
+            if session.card_cameras:
+                # pressed once the pulses run, before the first set is written: the take's first flash
+                # comes after that (sets wait in the session's queue meanwhile)
+                shutters = CardShutters(session.card_cameras, Path(out))
+                if notes is not None:
+                    notes(f"pressing the shutters of {', '.join(session.card_cameras)} (recording to their cards)")
+                shutters.press()
+            try:
+                if flash and session.board is not None:
+                    flasher = _Flasher(session, Path(out))
+                    length = seconds if seconds is not None else sets / rate_hz
+                    # the first flash once every free-running camera delivers (a GoPro's stream takes a while
+                    # to start), the second near the end
+                    waiting_for = {c.name for c in live if c.trigger == "free"}
+                    flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
+                for fs in _sets(session, lambda: seconds is not None and t_first is not None and time.monotonic() - t_first >= seconds):
+                    if not writer.write(fs):
+                        result.stopped_by = "storage"
+                        session.stop()
+                        break
+                    result.sets += 1
+                    if t_first is None:
+                        t_first = time.monotonic()  # the take starts with its first set, after the clock warm-up
+                        cpu0 = time.process_time()
+                    elapsed = time.monotonic() - t_first
+                    if flasher is not None and waiting_for:
+                        waiting_for -= {n for n, f in fs.frames.items() if f is not None}
+                        if not waiting_for:  # every free-running camera delivers: the first flash is due
+                            first = elapsed + FLASH_AT_S
+                            flash_times = [first] + [t for t in flash_times[1:] if t > first + 1.0]
+                    while flasher is not None and not waiting_for and flash_times and elapsed >= flash_times[0]:
+                        flash_times.pop(0)
+                        flasher.fire()
+                    if status is not None:
+                        status.update(_status_text(result, writer, session, elapsed, out))
+                    done = (sets is not None and result.sets >= sets) or (seconds is not None and elapsed >= seconds)
+                    if done or session.train_done.is_set():
+                        session.stop()  # flushes the last sets; the loop writes them and ends
+                session_stats = session.camera_stats()
+                result.errors.extend(session.errors())
+                if flasher is not None:
+                    flasher.join()
+            finally:
+                if shutters is not None:
+                    shutters.release()  # also when the take is interrupted: the cameras stop recording
     except KeyboardInterrupt:
         result.stopped_by = "interrupt"
         session_stats = {}
@@ -172,7 +197,14 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                 writer.write(fs)
             session_stats = session.camera_stats()
     finally:
-        writer.close()
+        writer.close()  # (leaving the session released any shutter still pressed)
+    if shutters is not None:
+        result.errors.extend(shutters.errors)
+    if cards and shutters is not None and result.stopped_by != "interrupt":
+        result.media = _fetch_media(out, notes, result.errors)
+    elif cards:
+        result.errors.append(f"{', '.join(cards)}: their videos were not downloaded (the take was interrupted); "
+                             f"`rig record fetch {out}` brings them into the take")
     result.flashes = len(flasher.fired) if flasher is not None else 0
     result.seconds = time.monotonic() - (t_first if t_first is not None else t0)
     result.cpu_s = time.process_time() - cpu0
@@ -186,6 +218,18 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
         result.errors.append(str(writer.error))
         result.stopped_by = "storage"
     return result
+
+
+def _fetch_media(out: Path, notes: Optional[Callable[[str], None]], errors: list[str]) -> dict:
+    """Download what the card cameras recorded; a camera left with files to fetch is an error."""
+    from rig.capture.fetch import fetch
+
+    media = fetch(out, notes=notes)
+    for name, cam in media["cameras"].items():
+        if cam["problem"]:
+            left = "" if cam["state"] == "done" else f"; `rig record fetch {out}` resumes the download"
+            errors.append(f"{name}: {cam['problem']}{left}")
+    return media
 
 
 def _sets(session, over: Callable[[], bool]):

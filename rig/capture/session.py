@@ -17,7 +17,10 @@ ends a run and flushes the last sets.
 One thread per camera pulls frames into the grouper; a pump thread hands ready sets to
 `framesets()`/`next_set()`. Hardware-triggered cameras expose on the board's pulses (on a sim rig
 the emulated board drives the sim cameras' trigger inputs); software-triggered cameras get a
-software trigger per pulse; free-running cameras are grouped by host time. Without a trigger board
+software trigger per pulse; free-running cameras are grouped by host time. Cameras that record to their own card (a GoPro with
+`?record=card`) are opened here too, in this process, but give no frames: they are in
+`card_cameras`, not `cameras`, and no set waits for them (`rig record` presses their shutters,
+rig.capture.cards). Without a trigger board
 the first camera (the `left` one if any) sets the instants, and software-triggered cameras are fired
 on each of its frames (or at its frame rate when it is software-triggered itself).
 
@@ -34,6 +37,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Optional
 
+from rig.cameras import open_camera as _open_in_process, records_to_card
 from rig.daemon.client import open_camera as _open_camera  # a camera's daemon when one serves it, else in-process
 from rig.config import RigConfig
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceError
@@ -81,12 +85,17 @@ class RigSession:
         self.resume = resume
         self._open_camera = open_camera
         self._on_event = on_event
-        self.cameras: dict[str, Any] = {}
+        self.cameras: dict[str, Any] = {}  # the cameras that give frames
+        self.card_cameras: dict[str, Any] = {}  # those that record to their own card (no frames)
+        self.live_configs = [c for c in config.cameras if not records_to_card(c)]
+        if not self.live_configs:
+            raise ConfigError("every camera of the rig records to its card: a take needs at least one camera "
+                              "with live frames (its sets and pulses are what the videos are aligned to)")
         self.board: Optional[TriggerBoard] = None
         self.emulator = None  # the emulated board of a sim:// trigger
         self.grouper: Optional[FrameGrouper] = None
         self.events: list[SessionEvent] = []
-        self.frames_delivered: dict[str, int] = {c.name: 0 for c in config.cameras}
+        self.frames_delivered: dict[str, int] = {c.name: 0 for c in self.live_configs}
         self.board_lost = False
         self.train_pulses: int = 0  # pulses asked for in the current train (0 = until stop)
         self._out: queue.Queue = queue.Queue()
@@ -107,7 +116,10 @@ class RigSession:
             if self.config.trigger is not None:
                 self._open_board()  # first: its clock model learns while the cameras open and start
             for cam_cfg in self.config.cameras:
-                self.cameras[cam_cfg.name] = self._open_camera(cam_cfg)
+                if records_to_card(cam_cfg):  # no daemon serves it: it has no frames to share
+                    self.card_cameras[cam_cfg.name] = _open_in_process(cam_cfg)
+                else:
+                    self.cameras[cam_cfg.name] = self._open_camera(cam_cfg)
             self.grouper = self._make_grouper()
         except BaseException:
             self.close()
@@ -115,12 +127,13 @@ class RigSession:
         # said once everything is open, not before: a camera or URI that fails to open is then the
         # command's only line on stderr
         board = f" and the trigger board {self.config.trigger.uri}" if self.board is not None else ""
-        self._phase(f"opened {len(self.cameras)} cameras ({', '.join(self.cameras)}){board}")
+        cards = f", {len(self.card_cameras)} recording to their cards ({', '.join(self.card_cameras)})" if self.card_cameras else ""
+        self._phase(f"opened {len(self.cameras)} cameras ({', '.join(self.cameras)}){cards}{board}")
         return self
 
     def _open_board(self) -> None:
         trig = self.config.trigger
-        hardware = [c for c in self.config.cameras if c.trigger == "hardware"]
+        hardware = [c for c in self.live_configs if c.trigger == "hardware"]
         from rig.daemon.board_client import RemoteBoard, board_daemon
 
         owner = board_daemon(self.config.name)
@@ -163,13 +176,13 @@ class RigSession:
         return fire
 
     def _make_grouper(self) -> FrameGrouper:
-        modes = {c.name: (HARDWARE if c.trigger == "hardware" else TIMED) for c in self.config.cameras}
-        latency = {c.name: int(c.latency_ms * 1e6) for c in self.config.cameras if c.latency_ms is not None}
+        modes = {c.name: (HARDWARE if c.trigger == "hardware" else TIMED) for c in self.live_configs}
+        latency = {c.name: int(c.latency_ms * 1e6) for c in self.live_configs if c.latency_ms is not None}
         if self.board is not None:
             return FrameGrouper(modes, self.config.trigger.rate_hz, clock=self.board.clock, max_wait_s=self.max_wait_s,
                                 latency_ns=latency)
         left = self.config.by_role("left")
-        reference = left.name if left is not None else self.config.cameras[0].name
+        reference = left.name if left is not None and left in self.live_configs else self.live_configs[0].name
         return FrameGrouper(modes, self.config.camera(reference).fps, reference=reference, max_wait_s=self.max_wait_s,
                             latency_ns=latency)
 
@@ -242,7 +255,7 @@ class RigSession:
                 pass
         # frames still on their way: wait until every fired pulse has its set (complete, or given up
         # on by the grouper's own patience), so a busy host does not cut the last sets short
-        settle = max(0.2, max((c.exposure_us or 5000.0) for c in self.config.cameras) * 1e-6 * 2 + 0.1)
+        settle = max(0.2, max((c.exposure_us or 5000.0) for c in self.live_configs) * 1e-6 * 2 + 0.1)
         deadline = time.monotonic() + settle + self.grouper.max_wait_ns / 1e9
         time.sleep(settle / 2)
         while time.monotonic() < deadline and not self.grouper.settled():
@@ -271,9 +284,9 @@ class RigSession:
             self.board.close()
         if self.emulator is not None:
             self.emulator.close()
-        for cam in self.cameras.values():
+        for cam in list(self.cameras.values()) + list(self.card_cameras.values()):
             try:
-                cam.close()
+                cam.close()  # a card camera still recording releases its shutter
             except Exception:
                 pass
 

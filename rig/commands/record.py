@@ -9,10 +9,12 @@ from pathlib import Path
 
 def register(sub) -> None:
     p = sub.add_parser("record", help="record every camera of the rig in sync to a sequence folder; validate or repair one")
-    p.add_argument("action", nargs="?", choices=("validate", "repair", "align"),
-                   help="validate DIR | repair DIR | align DIR (omit to record); repair keeps every good set and the original "
-                        "index beside it; align puts free-running cameras' frames on the trigger pulses by the LED flashes "
-                        "the board fired during the take (the original index kept beside it)")
+    p.add_argument("action", nargs="?", choices=("validate", "repair", "align", "fetch"),
+                   help="validate DIR | repair DIR | align DIR | fetch DIR (omit to record); repair keeps every good set and "
+                        "the original index beside it; align puts free-running cameras' frames (and card cameras' videos) on "
+                        "the trigger pulses by the LED flashes the board fired during the take (the original index kept "
+                        "beside it); fetch downloads what cameras recording to their cards (gopro://...?record=card) recorded "
+                        "during the take and is still missing from it, resuming partial downloads")
     p.add_argument("dir", nargs="?", type=Path, help="sequence folder (validate / repair)")
     p.add_argument("-c", "--config", type=Path, help="rig configuration (TOML), to record")
     p.add_argument("-o", "--out", type=Path, help="new (or empty) sequence folder, to record")
@@ -20,7 +22,8 @@ def register(sub) -> None:
     g.add_argument("--seconds", type=float, help="record for this long")
     g.add_argument("--sets", type=int, help="record this many frame sets")
     p.add_argument("--pixels", action="store_true", help="validate: also decode every image (slower)")
-    p.add_argument("--camera", action="append", metavar="NAME", help="align: this camera (repeatable; default: every camera not hardware-triggered)")
+    p.add_argument("--camera", action="append", metavar="NAME", help="align, fetch: this camera (repeatable; default: every camera "
+                                                                      "not hardware-triggered / every card camera)")
     p.add_argument("--no-flash", action="store_true", help="record: do not flash the board's LED (by default a take with free-running "
                                                            "cameras and a trigger board gets two flashes, for `rig record align`)")
     p.add_argument("--json", action="store_true", help="print one JSON object (stderr: errors only)")
@@ -36,6 +39,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         return _repair(args)
     if args.action == "align":
         return _align(args)
+    if args.action == "fetch":
+        return _fetch(args)
     if args.config is None or args.out is None:
         raise ConfigError("record: needs -c RIG.toml and -o DIR (or: rig record validate|repair DIR)")
     return _record(args)
@@ -129,6 +134,14 @@ def alignment_lines(r: dict) -> list[str]:
         rate = f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else " (one flash: nominal clock rate)"
         lines.append(f"{name}: {c['placed']} of {c['frames']} frames placed ({c['moved']} moved to another set), uncertainty "
                      f"{c['error_periods']:.3f} frame periods ({c['error_periods'] * period_ms:.2f} ms){rate}, latency {c['latency_ms']:.1f} ms")
+    for v in r.get("videos", []):  # card cameras' videos: frame numbers to pulses
+        what = f"{v['camera']} {v['file']}" if v["file"] else v["camera"]
+        if v["problem"]:
+            lines.append(f"{what}: NOT aligned: {v['problem']}")
+            continue
+        rate = f", clock {v['rate_ppm']:+.0f} ppm" if v["rate_ppm"] is not None else " (one flash: nominal clock rate)"
+        lines.append(f"{what}: frame 0 at trigger {v['trigger_at_frame0']:.3f}, {v['pulses_per_frame']:.5f} pulses per frame, "
+                     f"uncertainty {v['error_periods']:.3f} pulse periods ({v['error_frames']:.3f} frames){rate}")
     return lines
 
 
@@ -143,10 +156,37 @@ def _align(args) -> int:
         for line in alignment_lines(r):
             print(f"  {line}")
         if r["backup"]:
-            print(f"the original index is kept as {r['backup']}; the report is {Path(r['path']) / 'alignment.json'}")
-    failed = [n for n, c in r["cameras"].items() if c["problem"]]
+            print(f"the original index is kept as {r['backup']}")
+        print(f"the report is {Path(r['path']) / 'alignment.json'}")
+    failed = [(n, c["problem"]) for n, c in r["cameras"].items() if c["problem"]]
+    failed += [(v["file"] or v["camera"], v["problem"]) for v in r["videos"] if v["problem"]]
     if failed:
-        print(f"rig: error: {args.dir}: could not align {', '.join(failed)}: {r['cameras'][failed[0]]['problem']}", file=sys.stderr)
+        print(f"rig: error: {args.dir}: could not align {', '.join(n for n, _ in failed)}: {failed[0][1]}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _fetch(args) -> int:
+    from rig.capture.fetch import fetch
+    from rig.commands._output import emit_json
+    from rig.progress import Notes
+
+    root = _need_dir(args)
+    r = fetch(root, args.camera, notes=Notes(quiet=args.json))
+    if args.json:
+        emit_json(r)
+    else:
+        for name, c in r["cameras"].items():
+            files = c["files"] or []
+            done = [f for f in files if f["state"] == "done"]
+            size = sum(f["size"] or 0 for f in done) / 1e6
+            state = "done" if c["state"] == "done" else "NOT done"
+            print(f"  {name}: {state}: {len(done)} of {len(files)} files in the take ({size:.1f} MB)"
+                  + (f"; {c['problem']}" if c["problem"] else ""))
+    failed = [(n, c["problem"]) for n, c in r["cameras"].items() if c["problem"] or c["state"] != "done"]
+    if failed:
+        print(f"rig: error: {root}: {failed[0][0]}: {failed[0][1] or 'files left to download'} (run `rig record fetch "
+              f"{root}` again once the camera answers)", file=sys.stderr)
         return 1
     return 0
 
@@ -185,7 +225,11 @@ def _record(args) -> int:
               f"{rates}frames lost {sum(result.frames_lost.values())}")
         for n in result.frames:
             print(f"  {n}: {result.frames[n]} frames, {result.drops.get(n, 0)} dropped by the camera link")
-        print(f"next: rig record validate {result.out}")
+        for n, c in ((result.media or {}).get("cameras") or {}).items():
+            done = [f for f in c["files"] or [] if f["state"] == "done"]
+            print(f"  {n}: recorded to its card; {len(done)} of {len(c['files'] or [])} videos downloaded into "
+                  f"{result.out / 'media' / n} ({sum(f['size'] or 0 for f in done) / 1e6:.1f} MB)")
+        print(f"next: rig record validate {result.out}" + (f"; rig record align {result.out}" if result.flashes else ""))
     for e in result.errors:
         print(f"rig: error: {e}", file=sys.stderr)
     if result.errors:

@@ -175,7 +175,10 @@ def unit_names(cfg) -> list[str]:
     bad = [c.name for c in cfg.cameras if not (c.name.isascii() and _CAMERA_UNIT_NAME.fullmatch(c.name))]
     if bad:
         raise ConfigError(f"camera name {bad[0]!r} cannot name a systemd unit (use ASCII letters, digits, '-' and '_')")
-    names = [f"rig-camera@{c.name}.service" for c in cfg.cameras]
+    from rig.cameras import records_to_card
+
+    # no daemon for a camera that records to its card: it has no frames to serve (each take opens it)
+    names = [f"rig-camera@{c.name}.service" for c in cfg.cameras if not records_to_card(c)]
     if cfg.trigger is not None:
         names.append(BOARD_UNIT)
     return names

@@ -66,7 +66,10 @@ class Supervisor:
         self.start_timeout_s = start_timeout_s
         self.daemon_args = tuple(daemon_args)
         self.say = say
-        self.children = {c.name: Child(c.name) for c in config.cameras}
+        from rig.cameras import records_to_card
+
+        # a camera recording to its card has no frames to serve: each take opens it (rig record)
+        self.children = {c.name: Child(c.name) for c in config.cameras if not records_to_card(c)}
         if config.trigger is not None:  # the board's owner, under a name no camera file can have
             self.children[BOARD] = Child(BOARD)
         self.events: list[dict] = []

@@ -17,6 +17,10 @@ The index as it was is kept beside it (`index.before-align-<UTC>.jsonl`, as `rig
 does), and `alignment.json` records what was found per camera: the flashes' onsets and their
 uncertainty, the clock rate, frames placed and moved, and the camera's latency (how long after its
 exposure a frame reached the host), which live grouping can use (`latency_ms` in the config).
+
+Cameras that recorded to their own card have no frames in the index: their downloaded videos are
+aligned by the same flashes (rig.storage.align_video), each video's mapping from frame number to
+trigger position going into `alignment.json` under `videos`; the index is not touched for them.
 """
 from __future__ import annotations
 
@@ -29,7 +33,10 @@ import numpy as np
 
 from common.files import atomic_write_bytes, atomic_write_json
 from rig.storage.index import scan_index
-from rig.storage.layout import CONFIG_COPY, FLASHES, INDEX, SequenceError, SequenceMeta
+from rig.storage.align_video import align_videos
+from rig.storage.flash_fit import check_flash_shape, fit_clock, read_flashes
+from rig.storage.layout import CONFIG_COPY, INDEX, SequenceError, SequenceMeta
+from rig.storage.media import MANIFEST, MediaManifest
 from rig.storage.netpbm import read_netpbm
 from rig.storage.repair import keep_index_copy
 from sync.alignment import brightness_trace, find_flash
@@ -40,7 +47,6 @@ REPORT = "alignment.json"
 # Frames looked at around a flash, by host arrival: a free-running camera's frames reach the host
 # late (a GoPro's stream by a few hundred ms), never early.
 BEFORE_S, AFTER_S = 0.5, 1.5
-MAX_RATE_ERROR = 0.01  # a fitted clock rate further than 1 % from nominal means a flash was mismatched
 
 
 @dataclass
@@ -79,58 +85,54 @@ def _camera_settings(root: Path) -> dict[str, Any]:
         return {}
 
 
-def read_flashes(root: Path) -> list[dict[str, Any]]:
-    path = root / FLASHES
-    if not path.is_file():
-        raise SequenceError(f"{root}: no {FLASHES}: the take has no LED flashes to align by "
-                            "(record with a trigger board and free-running cameras; the LED must be in their view)")
-    flashes = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
-        try:
-            f = json.loads(line)
-            flashes.append({"trigger": float(f["trigger"]), "host_ns": int(f["host_ns"]), "ms": float(f["ms"])})
-        except (ValueError, KeyError, TypeError):
-            continue  # a torn last line (the recorder died writing it) or a flash without a time
-    if not flashes:
-        raise SequenceError(f"{path}: no usable flash in it")
-    return sorted(flashes, key=lambda f: f["trigger"])
-
-
 def align(root: str | Path, cameras: Optional[Sequence[str]] = None) -> dict[str, Any]:
-    """Align the take's free-running cameras (or `cameras`) and rewrite its index; the report."""
+    """Align the take's free-running cameras (or `cameras`) and rewrite its index, and align the
+    videos of its card-recording cameras (rig.storage.align_video); the report."""
     root = Path(root)
     meta = SequenceMeta.load(root)
     flashes = read_flashes(root)
-    names = list(cameras) if cameras else free_cameras(root)
     recorded = [c.name for c in meta.cameras]
-    unknown = [n for n in names if n not in recorded]
-    if unknown:
-        raise SequenceError(f"{root}: no camera {', '.join(unknown)} in the take (it has {', '.join(recorded)})")
-    if not names:
+    manifest = MediaManifest.load(root) if (root / MANIFEST).is_file() else None
+    card = list(manifest.cameras) if manifest is not None else []
+    if cameras:
+        unknown = [n for n in cameras if n not in recorded and n not in card]
+        if unknown:
+            raise SequenceError(f"{root}: no camera {', '.join(unknown)} in the take (it has {', '.join(recorded + card)})")
+        names = [n for n in cameras if n in recorded]
+        video_cameras = [n for n in cameras if n in card]
+    else:
+        names = [n for n in free_cameras(root) if n in recorded and n not in card]
+        video_cameras = card
+    if not names and not video_cameras:
         raise SequenceError(f"{root}: every camera of the take was hardware-triggered: nothing to align")
     if not meta.rate_hz:
         raise SequenceError(f"{root}: the take does not say its trigger rate (sequence.json rate_hz)")
     rate_hz = float(meta.rate_hz)
     settings = _camera_settings(root)
-    data = (root / INDEX).read_bytes()
-    rows = scan_index(root).rows
     results = []
-    for name in names:
-        result, placement = _align_camera(root, name, rows, flashes, rate_hz, settings.get(name))
-        results.append(result)
-        if placement is not None:
-            _regroup(rows, name, placement, result)
     backup = None
-    if any(r.problem is None for r in results):
-        backup = keep_index_copy(root, data, BACKUP_PREFIX, "aligning")
-        new = b"".join(json.dumps(r, separators=(", ", ": ")).encode() + b"\n" for r in rows)
-        try:
-            atomic_write_bytes(root / INDEX, new)
-        except OSError as exc:
-            raise SequenceError(f"{root / INDEX}: could not write the aligned index ({exc.strerror}); the original is "
-                                f"unchanged (a copy is in {backup.name})") from None
+    if names:
+        data = (root / INDEX).read_bytes()
+        rows = scan_index(root).rows
+        for name in names:
+            result, placement = _align_camera(root, name, rows, flashes, rate_hz, settings.get(name))
+            results.append(result)
+            if placement is not None:
+                _regroup(rows, name, placement, result)
+        if any(r.problem is None for r in results):
+            backup = keep_index_copy(root, data, BACKUP_PREFIX, "aligning")
+            new = b"".join(json.dumps(r, separators=(", ", ": ")).encode() + b"\n" for r in rows)
+            try:
+                atomic_write_bytes(root / INDEX, new)
+            except OSError as exc:
+                raise SequenceError(f"{root / INDEX}: could not write the aligned index ({exc.strerror}); the original is "
+                                    f"unchanged (a copy is in {backup.name})") from None
+    videos = []
+    if video_cameras:
+        exposures = {n: settings[n].exposure_us for n in video_cameras if n in settings and settings[n].exposure_us}
+        videos = align_videos(manifest, flashes, rate_hz, video_cameras, exposures)
     report = {"path": str(root), "rate_hz": rate_hz, "flashes": flashes, "backup": str(backup) if backup else None,
-              "cameras": {r.camera: r.to_dict() for r in results}}
+              "cameras": {r.camera: r.to_dict() for r in results}, "videos": [v.to_dict() for v in videos]}
     atomic_write_json(root / REPORT, report)
     return report
 
@@ -161,7 +163,7 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
             images = [read_netpbm(root / file) for _, file in near]
             trace = brightness_trace(images)
             est = find_flash([t for t, _ in near], trace, exposure_ns, duration_ns=f["ms"] * 1e6)
-            _check_flash_shape(trace, [t for t, _ in near], est, f["ms"])
+            check_flash_shape(trace, [t for t, _ in near], est, f["ms"])
         except (SyncError, OSError, ValueError) as exc:
             entry["problem"] = f"flash at trigger {f['trigger']:.2f} not found: {exc}"
             result.flashes.append(entry)
@@ -172,24 +174,15 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
     if not points:
         result.problem = "; ".join(e.get("problem", "") for e in result.flashes) or "no flash"
         return result, None
-    onsets = np.array([p[0] for p in points])
-    places = np.array([p[1] for p in points])
-    nominal = rate_hz / 1e9  # pulse periods per ns of the camera's clock, if it kept time perfectly
-    if len(points) >= 2 and np.ptp(onsets) > 0:
-        slope, icpt = np.polyfit(onsets - onsets[0], places, 1)
-        if abs(nominal / slope - 1) > MAX_RATE_ERROR:
-            result.problem = (f"the flashes give a clock rate {1e6 * (nominal / slope - 1):+.0f} ppm from nominal: "
-                              "a flash was matched to the wrong one")
-            return result, None
-        result.rate_ppm = round(1e6 * (nominal / slope - 1), 1)  # > 0: the camera's clock runs fast
-    else:
-        slope, icpt = nominal, places[0]
-    fit = icpt + slope * (onsets - onsets[0])
-    residual = float(np.max(np.abs(fit - places))) if len(points) > 2 else 0.0
-    result.error_periods = round(max(p[2] for p in points) / period_ns + residual, 4)
+    try:
+        fit = fit_clock(points, rate_hz)
+    except SyncError as exc:
+        result.problem = str(exc)
+        return result, None
+    result.rate_ppm, result.error_periods = fit.rate_ppm, fit.error_periods
     placement, delays = {}, []
     for frame_id, (rec, _) in frames.items():
-        pos = icpt + slope * (rec["device_ts_ns"] - onsets[0])
+        pos = float(fit.position(rec["device_ts_ns"]))
         n = int(np.floor(pos + 0.5))
         placement[frame_id] = (n, pos - n)
         # the flash's host time ties the axis to the host clock: where this exposure began on it
@@ -198,18 +191,6 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
         delays.append(rec["host_ts_ns"] - host_at)
     result.latency_ms = round(float(np.median(delays)) / 1e6, 3)
     return result, placement
-
-
-def _check_flash_shape(trace: np.ndarray, times: list[int], est, ms: float) -> None:
-    """Something brightened: was it the flash? Its frames must form one run as long as the flash
-    (a person's arm passing a bright pixel does not), else SyncError."""
-    lit = np.asarray(trace) > est.baseline + 0.5 * est.amplitude
-    runs = int(np.sum(np.diff(lit.astype(np.int8)) == 1) + lit[0])
-    period = float(np.median(np.diff(times)))
-    expected = ms * 1e6 / period
-    if runs != 1 or abs(int(lit.sum()) - expected) > 1.5:
-        raise SyncError(f"what brightened ({int(lit.sum())} frames in {runs} runs) is not a {ms:g} ms flash "
-                        f"(about {expected:.1f} frames)")
 
 
 def _regroup(rows: list[dict], name: str, placement: dict[int, tuple[int, float]], result: CameraAlignment) -> None:

@@ -12,6 +12,7 @@ import numpy as np
 
 from rig.storage.index import scan_index
 from rig.storage.layout import CALIBRATION_COPY, INDEX, CameraEntry, SequenceMeta
+from rig.storage.media import media_problems
 from rig.storage.netpbm import NetpbmError, read_netpbm
 
 
@@ -141,6 +142,9 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
             v.calibrated = True
         except CalibrationError as exc:
             v.errors.append(str(exc))
+    media_errors, media_warnings = media_problems(root)  # videos of cameras that recorded to their cards
+    v.errors.extend(media_errors)
+    v.warnings.extend(media_warnings)
     if v.sets == 0:
         v.warnings.append("no frame sets recorded")
     return v

@@ -22,8 +22,10 @@ Behaviour, as the specification describes a camera:
   (status off, error 5 "Com timeout"); `events` records it.
 
 `render(t)` gets times from `clock` (default time.monotonic); the default picture is
-`pattern.time_code_pattern` (a colour of the serial's, the time written along the top). Timers
-(busy, keep-alive, faults) run on the host monotonic clock.
+`pattern.time_code_pattern` (a colour of the serial's, the time written along the top).
+`media_render(t)` (default: `render`) draws the photos and videos written to the card: a video
+started at `clock()` = t0 shows `media_render(t0 + k / fps)` in frame k (`recordings` keeps t0).
+Timers (busy, keep-alive, faults) run on the host monotonic clock.
 """
 from __future__ import annotations
 
@@ -97,7 +99,8 @@ class GoProEmulator:
                  advertise: bool = True, *, media_dir: Optional[str | Path] = None,
                  media_size: Optional[tuple[int, int]] = None, keep_alive_timeout_s: Optional[float] = 10.0,
                  busy_s: float = 0.2, photo_s: float = 0.5, stream_codec: str = "h264",
-                 download_bytes_per_s: Optional[float] = None, clock: Callable[[], float] = time.monotonic):
+                 download_bytes_per_s: Optional[float] = None, clock: Callable[[], float] = time.monotonic,
+                 media_render: Optional[Callable[[float], np.ndarray]] = None):
         if not isinstance(serial, str) or not _SERIAL.fullmatch(serial):
             raise SimulatorError(f"GoPro emulator: serial {serial!r} must be letters and digits ending in three digits "
                                  "(e.g. C3501324645504): the USB address comes from them")
@@ -106,6 +109,7 @@ class GoProEmulator:
         self.serial = serial
         self.width, self.height, self.fps = int(width), int(height), float(fps)
         self.render = render or time_code_pattern(self.width, self.height, seed=serial)
+        self.media_render = media_render or self.render
         self.host = host
         self.http_port = int(http_port)
         self.advertise = advertise
@@ -292,7 +296,7 @@ class GoProEmulator:
             now = self.clock()
             if self.state.in_photo_mode:
                 name = self.media.new_name(photo=True)
-                image = self.render(now)
+                image = self.media_render(now)
                 write_photo(self.media.folder / name, np.asarray(image)[:, :, :3])
                 self.media.add(name, time.time())
                 self.state.photos += 1
@@ -301,7 +305,7 @@ class GoProEmulator:
                 return
             name = self.media.new_name(photo=False)
             fps = self.state.frame_rate
-            self._writer = VideoWriter(self.media.folder / name, self.render, now, fps, *self.media_size,
+            self._writer = VideoWriter(self.media.folder / name, self.media_render, now, fps, *self.media_size,
                                        clock=self.clock).start()
             self._writer_name = name
             self._writer_created = time.time()

@@ -129,9 +129,11 @@ def write_photo(path: Path, image: np.ndarray) -> None:
 class VideoWriter:
     """Encodes the frames of one recording into an MP4 while the camera encodes.
 
-    `run()` (on its own thread) renders frame k once its time t0 + k / fps has come, so the work
-    is spread over the recording; `finish(t1)` fixes the frame count (the frame periods that began
-    before t1, at least one) and returns once the file is closed.
+    `run()` (on its own thread) renders frame k, the instant t0 + k / fps, once its frame period is
+    over (at t0 + (k + 1) / fps, as a camera encodes a frame once it is exposed: a picture of what
+    lights up or goes dark during the exposure needs to know it), so the work is spread over the
+    recording; `finish(t1)` fixes the frame count (the frame periods that began before t1, at least
+    one) and returns once the file is closed.
     """
 
     def __init__(self, path: Path, render: Render, t0: float, fps: float, width: int, height: int,
@@ -170,11 +172,11 @@ class VideoWriter:
                 stream.time_base = 1 / rate
                 k = 0
                 while self._end is None or k < self._end:
-                    due = self.t0 + k / self.fps
-                    if self._end is None and self.clock() < due:
-                        self._wake.wait(min(0.05, max(0.0, due - self.clock())))
+                    exposed = self.t0 + (k + 1) / self.fps  # the end of frame k's exposure
+                    if self._end is None and self.clock() < exposed:
+                        self._wake.wait(min(0.05, max(0.0, exposed - self.clock())))
                         continue
-                    image = _fit(self.render(due), self.width, self.height)
+                    image = _fit(self.render(self.t0 + k / self.fps), self.width, self.height)
                     frame = av.VideoFrame.from_ndarray(image, format="rgb24")
                     frame.pts = k
                     for packet in stream.encode(frame):

@@ -9,6 +9,10 @@ Each emulator's webcam stream shows the scene from where its camera stands on th
 as a video camera's. Frame k of a stream shows the instant t0 + k / fps of the simulated clock
 (host monotonic ns minus `epoch_ns`, as the sim:// cameras count), t0 being when the stream began:
 `stream_start(emulator)` says it once the stream runs, so a test can know each frame's true time.
+
+A video the emulator records to its card on the shutter (`?record=card` cameras) is on the simulated
+clock too: the emulator's clock is the simulated one, so its `recordings` say the simulated instant
+t0 whose picture frame 0 shows (frame k: t0 + k / fps), each frame exposed for 1 / fps from it.
 """
 from __future__ import annotations
 
@@ -55,8 +59,15 @@ def scene_emulators(config, epoch_ns: int, *, advertise: bool = False, **options
                     state["t0"] = (time.monotonic_ns() - epoch_ns) / 1e9 - 1.0 / cam_fps
                 return source(state["t0"] + t, exposure_s, rng)
 
+            def media_render(t: float, source=source, exposure_s=exposure_s, rng=rng) -> np.ndarray:
+                return source(t, exposure_s, rng)  # t: the simulated instant itself (the emulator's clock)
+
+            def scene_clock() -> float:
+                return (time.monotonic_ns() - epoch_ns) / 1e9
+
             emu = GoProEmulator(serial, render=render, width=cam.width, height=cam.height, fps=cam.fps, host=host,
-                                http_port=port, advertise=advertise, **options)
+                                http_port=port, advertise=advertise, clock=scene_clock, media_render=media_render,
+                                **options)
             emu.scene_clock = state
             emulators.append(emu.start())
     except BaseException:
