@@ -96,10 +96,11 @@ class BackboneConfig:
         if self.kind not in BACKBONE_KINDS:
             raise InferenceError(f"backbone: unknown kind '{self.kind}' (allowed: {', '.join(BACKBONE_KINDS)})")
         if self.kind == "mast3r":
-            for name in ("mast3r_encoder_blocks", "mast3r_decoder_blocks"):
+            # The DPT reads decoder blocks L/2, 3L/4 and L: at least 2 of them.
+            for name, least in (("mast3r_encoder_blocks", 1), ("mast3r_decoder_blocks", 2)):
                 v = getattr(self, name)
-                if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                    raise InferenceError(f"backbone: {name} must be an integer >= 1, got {v!r}")
+                if not isinstance(v, int) or isinstance(v, bool) or v < least:
+                    raise InferenceError(f"backbone: {name} must be an integer >= {least}, got {v!r}")
             if self.patch != 16:
                 raise InferenceError(f"backbone: mast3r works on 16x16 patches, got patch {self.patch}")
         if self.kind == "stereo":

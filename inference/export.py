@@ -49,7 +49,8 @@ from inference.config import STAGES
 from inference.errors import InferenceError, OutputError
 from inference.model.checkpoint import seed_record
 from inference.model.pipeline import INPUT_NAMES, OUTPUT_NAMES, STAGE1_OUTPUT_NAMES, SplatSAP
-from inference.onnx_weights import EXTERNAL_DATA_LIMIT, WeightStore, detach, has_detached, is_detached, write_models
+from inference import onnx_weights
+from inference.onnx_weights import WeightStore, detach, has_detached, is_detached, write_models
 from inference.runtime.split import TARGET_INPUTS, part_path
 from inference.runtime.synthetic import example_inputs
 
@@ -219,15 +220,17 @@ def export_onnx(
     opset: int = OPSET,
     seed: int = 0,
     optimize: bool = False,
-    external_data_limit: int = EXTERNAL_DATA_LIMIT,
+    external_data_limit: int | None = None,
 ) -> ExportResult:
     """Export `model` to `path` (and `<stem>.fp16.onnx` beside it when fp16). Raises InferenceError.
 
     `optimize` runs the exporter's full graph optimiser, whose pattern rewriter takes most of the
     export time; by default only constants are folded and dead nodes removed, and ONNX Runtime
     (or TensorRT) fuses what it can when it loads the model. A file set whose weights exceed
-    `external_data_limit` bytes keeps them in one data file beside it (inference.onnx_weights).
+    `external_data_limit` bytes (default onnx_weights.EXTERNAL_DATA_LIMIT, 2 GB) keeps them in one data file beside it (inference.onnx_weights).
     """
+    if external_data_limit is None:
+        external_data_limit = onnx_weights.EXTERNAL_DATA_LIMIT  # read at call time (tests lower it)
     if opset < 18:
         raise InferenceError(f"opset {opset} is too old: the pipeline needs ScatterElements with min reduction (opset 18 or later)")
     path = Path(path)

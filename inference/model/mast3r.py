@@ -46,6 +46,10 @@ class MASt3RArch:
     desc_dim: int = 24
     desc_conf: bool = True  # two_confs=True: a separate descriptor confidence channel
 
+    def __post_init__(self) -> None:
+        if self.encoder_blocks < 1 or self.decoder_blocks < 2:  # the DPT reads decoder blocks L/2, 3L/4, L
+            raise ValueError(f"MASt3R needs at least 1 encoder and 2 decoder blocks, got {self.encoder_blocks}, {self.decoder_blocks}")
+
     @classmethod
     def from_config(cls, cfg: BackboneConfig) -> "MASt3RArch":
         return cls(encoder_blocks=cfg.mast3r_encoder_blocks, decoder_blocks=cfg.mast3r_decoder_blocks)

@@ -138,8 +138,8 @@ def arch_from_record(recorded: str | None, source: str) -> tuple[MASt3RArch, dic
         raise InferenceError(f"{source}: a {kw['class']} checkpoint, not {CHECKPOINT_NAME} (an AsymmetricMASt3R)")
     depths = {k: kw.get(k, ARCH_DEFAULTS[k]) for k in ("enc_depth", "dec_depth")}
     for k, v in depths.items():
-        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-            raise InferenceError(f"{source}: its recorded architecture has {k}={v!r}")
+        if not isinstance(v, int) or isinstance(v, bool) or v < (2 if k == "dec_depth" else 1):
+            raise InferenceError(f"{source}: its recorded architecture has {k}={v!r} (this backbone needs enc_depth >= 1, dec_depth >= 2)")
     return MASt3RArch(encoder_blocks=depths["enc_depth"], decoder_blocks=depths["dec_depth"]), kw
 
 
@@ -178,6 +178,8 @@ def to_our_state_dict(state: dict, source: str) -> dict[str, torch.Tensor]:
     """The official state dict under our names (KEY_MAP); call check_layout first."""
     ours: dict[str, torch.Tensor] = {}
     for key, value in state.items():
+        if value.is_meta:
+            raise InferenceError(f"{source}: entry {key} holds no data (a meta tensor)")
         mine = official_to_ours(key)
         if mine is None:
             continue
