@@ -142,3 +142,38 @@ def test_training_keeps_the_backbone_frozen_and_trains_stage_1(weights, tmp_path
     initial = {k: v for k, v in build_model(cfg, seed=0).state_dict().items() if k.startswith("affine_transform.")}
     changed = [k for k, v in initial.items() if not torch.equal(v, trained[k])]
     assert len(changed) > len(initial) // 2, changed
+
+    # rig model eval on the untrained pipeline over MASt3R (S = 1, T = 0: MASt3R's own geometry).
+    code, stdout, err = rig(capsys, "model", "eval", "--backbone", "mast3r", "--weights", w, "--size", "test", "--sequence", take,
+                            "--max-sets", "1", "--no-references", "--json")
+    assert code == 0, err
+    result = json.loads(stdout)
+    assert result["sets"] == 1 and result["overall"]["psnr"] > 0 and "CC BY-NC-SA 4.0" in err
+
+
+def test_external_data_replaces_an_earlier_export_only_once_the_models_are_written(tmp_path):
+    from onnx import TensorProto, helper, numpy_helper
+
+    from inference.export import _save
+    from inference.onnx_weights import data_files, detach, write_models
+
+    def model(value: float) -> onnx.ModelProto:
+        w = numpy_helper.from_array(np.full((64, 64), value, np.float32), "w")
+        g = helper.make_graph([helper.make_node("MatMul", ["x", "w"], ["y"])], "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 64])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 64])], [w])
+        return helper.make_model(g, opset_imports=[helper.make_opsetid("", 18)])
+
+    import onnxruntime as ort
+
+    path = tmp_path / "m.onnx"
+    run = lambda: ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, {"x": np.ones((1, 64), np.float32)})[0]  # noqa: E731
+    for value in (1.0, 2.0):
+        proto = model(value)
+        store = detach(proto)
+        first = write_models([(proto, path)], store, _save, limit=1000)
+        assert data_files(path) == [first]  # the earlier export's data file is gone, the new one named by its content
+        assert float(run()[0, 0]) == 64 * value
+    # Under the limit the file is self-contained again, and the data file goes.
+    proto = model(3.0)
+    assert write_models([(proto, path)], detach(proto), _save) is None
+    assert data_files(path) == [] and float(run()[0, 0]) == 192.0
