@@ -101,7 +101,9 @@ class DPT(nn.Module):
         maps = []
         for i, hook in enumerate(self.hooks):
             t = tokens[hook]
-            x = t.transpose(1, 2).reshape(t.shape[0], t.shape[2], h, w)
+            # (B, h*w, C) -> (B, C, h, w) as a channels-last view, the memory layout the official
+            # model's convolutions see (a contiguous copy takes another kernel: 1e-6 apart).
+            x = t.reshape(t.shape[0], h, w, t.shape[2]).permute(0, 3, 1, 2)
             x = self.act_postprocess[i](x)
             maps.append(getattr(self.scratch, f"layer{i + 1}_rn")(x))
         s = self.scratch
@@ -114,8 +116,8 @@ class DPT(nn.Module):
 
 
 def points_from_raw(xyz: torch.Tensor) -> torch.Tensor:
-    """The 'exp' depth mode on (B, 3, H, W): the direction of xyz times expm1(|xyz|)."""
-    d = xyz.norm(dim=1, keepdim=True)
+    """The 'exp' depth mode on (..., 3): the direction of xyz times expm1(|xyz|)."""
+    d = xyz.norm(dim=-1, keepdim=True)
     return xyz / d.clamp(min=1e-8) * torch.expm1(d)
 
 
@@ -135,15 +137,20 @@ class PointsAndFeaturesHead(nn.Module):
         """tokens: [encoder output, decoder block 1, ..., decoder block L (normalised)], each (B, h*w, C).
         Returns pts3d (B, 3, H, W), conf (B, 1, H, W) >= 1 and, with `descriptors`, desc (B, D, H, W)
         (unit length) and desc_conf (B, 1, H, W) > 0."""
-        raw = self.dpt(tokens, grid)
-        out = {"pts3d": points_from_raw(raw[:, 0:3]), "conf": 1.0 + torch.exp(raw[:, 3:4])}
+        out = self.dpt(tokens, grid)  # (B, 4, H, W): x, y, z, confidence
         if descriptors:
             b = tokens[0].shape[0]
             h, w = grid
             feats = self.head_local_features(torch.cat([tokens[0], tokens[-1]], dim=-1))  # (B, h*w, (D+1) p^2)
             feats = F.pixel_shuffle(feats.transpose(1, 2).reshape(b, -1, h, w), self.patch)
-            desc = feats[:, : self.desc_dim]
-            out["desc"] = desc / desc.norm(dim=1, keepdim=True)
+            out = torch.cat([out, feats], dim=1)
+        # Channels last, as the official post-processing reads them: the same tensors in the same
+        # memory order, hence the same float rounding of the norms (expm1 magnifies a last bit).
+        fmap = out.permute(0, 2, 3, 1)
+        res = {"pts3d": points_from_raw(fmap[..., 0:3]).permute(0, 3, 1, 2), "conf": (1.0 + fmap[..., 3].exp())[:, None]}
+        if descriptors:
+            desc = fmap[..., 4 : 4 + self.desc_dim]
+            res["desc"] = (desc / desc.norm(dim=-1, keepdim=True)).permute(0, 3, 1, 2)
             if self.desc_conf:
-                out["desc_conf"] = torch.exp(feats[:, self.desc_dim : self.desc_dim + 1])
-        return out
+                res["desc_conf"] = fmap[..., 4 + self.desc_dim].exp()[:, None]
+        return res
