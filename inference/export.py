@@ -18,6 +18,10 @@ replaces each large one whose elements are all equal by a ConstantOfShape node, 
 integer-step ramp (a pixel coordinate grid, or a few of them stacked) by Range, Reshape and Expand
 (Concat for a stack), which compute the same values exactly; ONNX Runtime folds them again at load.
 
+Weights above 2 GB (the MASt3R backbone) cannot be one protobuf: the export keeps them out of the
+graphs once traced and writes them to one external-data file beside the models
+(inference.onnx_weights); smaller models stay one self-contained file each.
+
 Metadata (`custom_metadata_map` in ONNX Runtime) lets the runtime and `rig model check` rebuild
 everything they need without torch:
     splat_sap.format     "1"

@@ -207,10 +207,12 @@ def read_weights(path: str | os.PathLike) -> MASt3RWeights:
         except Exception as exc:  # truncated zip, foreign pickle, not a torch file at all ...
             error = exc
     if data is None:
-        text = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        text = str(error).strip().splitlines()[0].split(". ")[0] if str(error).strip() else ""
         if "Unsupported global" in str(error) or "weights_only" in str(error):
-            raise InferenceError(f"{path}: holds Python objects other than tensors and the recorded arguments; "
-                                 f"not loaded ({type(error).__name__})") from None
+            found = re.search(r"GLOBAL ([\w.]+)", str(error))
+            what = found.group(1) if found else type(error).__name__
+            raise InferenceError(f"{path}: holds a Python object ({what}) besides tensors and the recorded arguments; "
+                                 f"not loaded (only argparse.Namespace is accepted)") from None
         raise InferenceError(f"{path}: not a readable torch checkpoint (truncated or corrupt? {type(error).__name__}: {text[:120]})") from None
     if isinstance(data, dict) and data.get("format") == "splat-sap":
         raise InferenceError(f"{path}: a Splat-SAP checkpoint (give it as --checkpoint), not MASt3R weights")

@@ -40,6 +40,10 @@ def test_a_full_size_state_dict_in_the_official_layout_loads_strictly():
     assert torch.equal(params["downstream_head1.dpt.scratch.layer4_rn.weight"], state["downstream_head1.dpt.scratch.layer_rn.3.weight"])
 
 
+class _Pickled:
+    pass
+
+
 def _meta_state():
     return random_state(official_table(), device="meta")
 
@@ -103,6 +107,9 @@ def test_files_are_read_with_their_recorded_depths_and_bad_files_refused(small_s
     (tmp_path / "text.pth").write_text("hello")
     with pytest.raises(InferenceError, match="not a readable torch checkpoint"):
         read_weights(tmp_path / "text.pth")
+    torch.save({"model": few, "args": _Pickled()}, tmp_path / "code.pth")  # unpickling it would construct an arbitrary object
+    with pytest.raises(InferenceError, match=r"code\.pth: holds a Python object \(test_mast3r_layout\._Pickled\) besides tensors"):
+        read_weights(tmp_path / "code.pth")
     torch.save({"format": "splat-sap", "version": 1}, tmp_path / "ours.pt")
     with pytest.raises(InferenceError, match=r"a Splat-SAP checkpoint \(give it as --checkpoint\), not MASt3R weights"):
         read_weights(tmp_path / "ours.pt")
