@@ -343,8 +343,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             blocks = tuple(int(v) for v in args.mast3r_blocks.split(","))
         except ValueError:
             blocks = ()
-        if len(blocks) != 2 or min(blocks) < 1:
-            raise InferenceError(f"--mast3r-blocks {args.mast3r_blocks}: give two depths >= 1, ENC,DEC (e.g. 24,12)")
+        if len(blocks) != 2 or blocks[0] < 1 or blocks[1] < 2:
+            raise InferenceError(f"--mast3r-blocks {args.mast3r_blocks}: give ENC,DEC with ENC >= 1 and DEC >= 2 (the checkpoint's: 24,12)")
         if args.backbone != "mast3r" or args.weights or args.checkpoint or args.model:
             raise InferenceError("--mast3r-blocks reduces the random-weight MASt3R backbone: use it with --backbone mast3r alone")
     if args.weights is not None:

@@ -158,6 +158,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         weights_record = backbone_weights_record(args.weights)
         if int(os.environ.get("RANK", "0")) == 0:
             print(f"note: loading {args.weights}: {LICENCE}", file=sys.stderr)
+    elif cfg.model.backbone.kind == "mast3r" and int(os.environ.get("RANK", "0")) == 0:
+        from inference.model.mast3r_weights import LICENCE
+
+        print(f"note: the checkpoint holds MASt3R weights: {LICENCE}", file=sys.stderr)
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
