@@ -10,7 +10,7 @@ import numpy as np
 import onnx
 import pytest
 import torch
-from mast3r_support import ARCH, official_layout, random_state, write_checkpoint
+from mast3r_support import official_layout, random_state, write_checkpoint
 
 import inference.onnx_weights as onnx_weights
 from rig.cli import main as rig_main

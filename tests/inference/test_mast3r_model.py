@@ -12,7 +12,7 @@ from mast3r_support import official_layout, random_state
 
 from inference.config import BackboneConfig, ModelConfig, Sizes
 from inference.export import _quiet
-from inference.model.mast3r import MASt3RBackbone, MASt3RNet
+from inference.model.mast3r import MASt3RBackbone
 from inference.model.mast3r_vit import apply_rope, rope_tables
 from inference.model.mast3r_weights import load_into
 from inference.model.backbone import PointMaps
