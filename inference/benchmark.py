@@ -103,11 +103,15 @@ def run_benchmark(
     model_path: str | os.PathLike | None = None,
     workdir: str | os.PathLike | None = None,
     progress=None,
+    weights: str | os.PathLike | None = None,
+    mast3r_blocks: tuple[int, int] | None = None,
 ) -> dict:
     """Time torch and ONNX Runtime on the same inputs and return the figures.
 
     Either export a model at `size` (a preset name) with `backbone` (untrained) or `checkpoint`,
     or benchmark an exported `model_path` against the torch model it records it was made from.
+    With backbone "mast3r": its weights from `weights` (a MASt3R checkpoint), else random (seeded),
+    at the checkpoint's depths or `mast3r_blocks` (encoder, decoder).
     """
     if repeat < 1:
         raise InferenceError("repeat must be at least 1")
@@ -127,10 +131,10 @@ def run_benchmark(
         else:
             if size not in SIZE_PRESETS:
                 raise InferenceError(f"unknown size '{size}' (allowed: {', '.join(SIZE_PRESETS)})")
-            model, weights = _model_for(size, backbone, checkpoint)
+            model, record = _model_for(size, backbone, checkpoint, weights, mast3r_blocks)
             path = Path(tmp) / "model.onnx"
             say(f"exporting the {size} model")
-            export_onnx(model, path, weights=weights)
+            export_onnx(model, path, weights=record)
             preset = size
         sizes = model.cfg.sizes
         arrays = example_inputs(sizes, model.needs_depth).arrays
@@ -167,6 +171,8 @@ def run_benchmark(
         "size": sizes.describe(),
         "preset": preset,
         "backbone": model.cfg.backbone.kind,
+        **({"mast3r_blocks": [model.cfg.backbone.mast3r_encoder_blocks, model.cfg.backbone.mast3r_decoder_blocks],
+            "mast3r_weights": str(weights) if weights else "random"} if model.cfg.backbone.kind == "mast3r" else {}),
         "torch_device": device,
         "providers": chosen,
         "threads": threads or torch.get_num_threads(),
@@ -183,10 +189,18 @@ def run_benchmark(
     }
 
 
-def _model_for(size: str, backbone: str, checkpoint: str | None):
+def _model_for(size: str, backbone: str, checkpoint: str | None, weights=None, mast3r_blocks=None):
     sizes = Sizes.preset(size)
+    if weights:
+        from inference.model.checkpoint import backbone_weights_record, build_with_weights, seed_record
+
+        model, _ = build_with_weights(ModelConfig.for_backbone(backbone, sizes), weights)
+        return model, seed_record(0, backbone_weights_record(weights))
     if not checkpoint:
-        return build_model(ModelConfig.for_backbone(backbone, sizes)), None
+        cfg = ModelConfig.for_backbone(backbone, sizes)
+        if mast3r_blocks:
+            cfg.backbone.mast3r_encoder_blocks, cfg.backbone.mast3r_decoder_blocks = mast3r_blocks
+        return build_model(cfg), None
     from inference.model.checkpoint import checkpoint_record, load_checkpoint
 
     model = load_checkpoint(checkpoint)
@@ -197,7 +211,10 @@ def _model_for(size: str, backbone: str, checkpoint: str | None):
 
 def format_table(result: dict) -> str:
     sizes = ", ".join(f"{k} {v}" for k, v in result["size"].items())
-    rows = [f"Splat-SAP pipeline at {result['preset']} sizes ({sizes}), backbone {result['backbone']}, ONNX Runtime on {', '.join(result['providers'])}"]
+    backbone = result["backbone"]
+    if "mast3r_blocks" in result:
+        backbone += f" ({result['mast3r_blocks'][0]} encoder + {result['mast3r_blocks'][1]} decoder blocks, weights: {result['mast3r_weights']})"
+    rows = [f"Splat-SAP pipeline at {result['preset']} sizes ({sizes}), backbone {backbone}, ONNX Runtime on {', '.join(result['providers'])}"]
     rows.append(f"{'stage':<18}{'torch ms':>12}{'ORT ms':>12}{'paper ms':>12}")
     for k in list(STAGES) + ["other", "total"]:
         if k not in result["ort_ms"] and k not in result["torch_ms"]:

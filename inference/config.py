@@ -62,9 +62,15 @@ class Sizes:
         return {k: f"{w}x{h}" for k, (w, h) in asdict(self).items()}
 
 
+BACKBONE_KINDS = ("tiny", "stereo", "oracle", "mast3r")
+# Backbones whose point maps are metric out of the box: stage 1's scaling S starts at 1 for them
+# (Stage1Config.scale_reference = "one") instead of at the baseline.
+METRIC_BACKBONES = ("mast3r",)
+
+
 @dataclass
 class BackboneConfig:
-    kind: str = "tiny"  # tiny | stereo | oracle
+    kind: str = "tiny"  # tiny | stereo | oracle | mast3r
     # oracle: "metric" keeps ground-truth metres; "canonical" divides both point maps by their mean
     # distance to the left camera, as DUSt3R/MASt3R normalise theirs.
     oracle_scale: str = "metric"
@@ -80,10 +86,23 @@ class BackboneConfig:
     stereo_near: float = 0.5  # nearest plane, in baselines (the mean of the planes' inverse depths, an untrained
     # model's depth, is then about one baseline: the centre of an arc rig)
     stereo_far: float = 10.0  # farthest plane, in baselines
+    # mast3r: the public MASt3R checkpoint's network (inference.model.mast3r); every width is the
+    # checkpoint's, only the depths may be reduced (tests, quick CPU runs). The weights' file says
+    # its own depths (its recorded architecture), and loading it sets these.
+    mast3r_encoder_blocks: int = 24
+    mast3r_decoder_blocks: int = 12
 
     def __post_init__(self) -> None:
-        if self.kind not in ("tiny", "stereo", "oracle"):
-            raise InferenceError(f"backbone: unknown kind '{self.kind}' (allowed: tiny, stereo, oracle)")
+        if self.kind not in BACKBONE_KINDS:
+            raise InferenceError(f"backbone: unknown kind '{self.kind}' (allowed: {', '.join(BACKBONE_KINDS)})")
+        if self.kind == "mast3r":
+            # The DPT reads decoder blocks L/2, 3L/4 and L: at least 2 of them.
+            for name, least in (("mast3r_encoder_blocks", 1), ("mast3r_decoder_blocks", 2)):
+                v = getattr(self, name)
+                if not isinstance(v, int) or isinstance(v, bool) or v < least:
+                    raise InferenceError(f"backbone: {name} must be an integer >= {least}, got {v!r}")
+            if self.patch != 16:
+                raise InferenceError(f"backbone: mast3r works on 16x16 patches, got patch {self.patch}")
         if self.kind == "stereo":
             if self.stereo_features % self.stereo_groups:
                 raise InferenceError(f"backbone: stereo_features ({self.stereo_features}) must be a multiple of stereo_groups ({self.stereo_groups})")
@@ -112,10 +131,15 @@ class Stage1Config:
     # translation_step baselines per axis (tanh), and log(S / baseline) stays within +-scale_log_range.
     translation_step: float = 0.05
     scale_log_range: float = 2.0
+    # What S multiplies exp(r tanh(MLP / r)) by, i.e. S of an untrained model: "baseline" for a
+    # canonical point map (mean distance 1), "one" for metric point maps (the MASt3R metric checkpoint).
+    scale_reference: str = "baseline"
 
     def __post_init__(self) -> None:
         if self.affine not in ("learned", "bypass"):
             raise InferenceError(f"stage1: affine must be learned or bypass, got '{self.affine}'")
+        if self.scale_reference not in ("baseline", "one"):
+            raise InferenceError(f"stage1: scale_reference must be baseline or one, got '{self.scale_reference}'")
 
 
 @dataclass
@@ -180,10 +204,13 @@ class ModelConfig:
 
     @classmethod
     def for_backbone(cls, kind: str, sizes: Sizes | None = None, **overrides: Any) -> "ModelConfig":
-        """The default configuration of a backbone: the oracle gives metric points, so it bypasses the affine transform."""
+        """The default configuration of a backbone: the oracle gives metric points, so it bypasses the
+        affine transform; MASt3R's metric points start the learned scaling at S = 1."""
         cfg = cls(sizes=sizes or Sizes(), backbone=BackboneConfig(kind=kind))
         if kind == "oracle":
             cfg.stage1.affine = "bypass"
+        if kind in METRIC_BACKBONES:
+            cfg.stage1.scale_reference = "one"
         for key, value in overrides.items():
             section, _, name = key.partition(".")
             setattr(getattr(cfg, section), name, value)

@@ -18,6 +18,10 @@ replaces each large one whose elements are all equal by a ConstantOfShape node, 
 integer-step ramp (a pixel coordinate grid, or a few of them stacked) by Range, Reshape and Expand
 (Concat for a stack), which compute the same values exactly; ONNX Runtime folds them again at load.
 
+Weights above 2 GB (the MASt3R backbone) cannot be one protobuf: the export keeps them out of the
+graphs once traced and writes them to one external-data file beside the models
+(inference.onnx_weights); smaller models stay one self-contained file each.
+
 Metadata (`custom_metadata_map` in ONNX Runtime) lets the runtime and `rig model check` rebuild
 everything they need without torch:
     splat_sap.format     "1"
@@ -49,6 +53,8 @@ from inference.config import STAGES
 from inference.errors import InferenceError, OutputError
 from inference.model.checkpoint import seed_record
 from inference.model.pipeline import INPUT_NAMES, OUTPUT_NAMES, STAGE1_OUTPUT_NAMES, SplatSAP
+from inference import onnx_weights
+from inference.onnx_weights import WeightStore, detach, has_detached, is_detached, write_models
 from inference.runtime.split import TARGET_INPUTS, part_path
 from inference.runtime.synthetic import example_inputs
 
@@ -78,6 +84,8 @@ class ExportResult:
     # What the slimming did: {"replaced": initializers replaced, "bytes": their bytes,
     # "node_metadata_bytes": node metadata dropped}.
     slimmed: dict = field(default_factory=dict)
+    # External-data files beside the models (weights above the limit: fp32, then fp16), else empty.
+    data_files: tuple[Path, ...] = ()
 
 
 def example_arrays(model: SplatSAP, seed: int = 0) -> dict[str, np.ndarray]:
@@ -127,13 +135,14 @@ def _learned_layer(node: onnx.NodeProto) -> bool:
     return False
 
 
-def to_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
+def to_fp16(model: onnx.ModelProto, store: WeightStore | None = None) -> onnx.ModelProto:
     """Mixed precision: the learned layers' arithmetic (FP16_OPS inside torch.nn layers) in float16,
     everything else (geometry, splatting, normalisation, the inputs and outputs) in float32.
 
     A float tensor produced by a float16 node is float16; Casts are inserted where a float16 node
     reads a float32 tensor and where a float32 node reads a float16 one; weights are stored in
-    float16 when only float16 nodes read them.
+    float16 when only float16 nodes read them (detached weights, inference.onnx_weights, are
+    converted in `store`).
     """
     from onnx import TensorProto, helper, numpy_helper
 
@@ -164,8 +173,11 @@ def to_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
 
     for name, init in inits.items():
         if init.data_type == TensorProto.FLOAT and readers.get(name) and all(r in half_nodes for r in readers[name]):
-            arr = numpy_helper.to_array(init).astype("float16")
-            init.CopyFrom(numpy_helper.from_array(arr, name))
+            if is_detached(init):
+                store.to_float16(init)
+            else:
+                arr = numpy_helper.to_array(init).astype("float16")
+                init.CopyFrom(numpy_helper.from_array(arr, name))
             half_values.add(name)
     for k, n in enumerate(nodes):
         half = k in half_nodes
@@ -187,7 +199,8 @@ def to_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
     del g.node[:]
     g.node.extend(new_nodes)
     del g.value_info[:]  # types changed; ONNX Runtime infers them again
-    onnx.checker.check_model(model)
+    if not has_detached(model):  # else the files are checked once written (inference.onnx_weights)
+        onnx.checker.check_model(model)
     return model
 
 
@@ -211,13 +224,17 @@ def export_onnx(
     opset: int = OPSET,
     seed: int = 0,
     optimize: bool = False,
+    external_data_limit: int | None = None,
 ) -> ExportResult:
     """Export `model` to `path` (and `<stem>.fp16.onnx` beside it when fp16). Raises InferenceError.
 
     `optimize` runs the exporter's full graph optimiser, whose pattern rewriter takes most of the
     export time; by default only constants are folded and dead nodes removed, and ONNX Runtime
-    (or TensorRT) fuses what it can when it loads the model.
+    (or TensorRT) fuses what it can when it loads the model. A file set whose weights exceed
+    `external_data_limit` bytes (default onnx_weights.EXTERNAL_DATA_LIMIT, 2 GB) keeps them in one data file beside it (inference.onnx_weights).
     """
+    if external_data_limit is None:
+        external_data_limit = onnx_weights.EXTERNAL_DATA_LIMIT  # read at call time (tests lower it)
     if opset < 18:
         raise InferenceError(f"opset {opset} is too old: the pipeline needs ScatterElements with min reduction (opset 18 or later)")
     path = Path(path)
@@ -251,6 +268,9 @@ def export_onnx(
     traced = program.model_proto
     slimmed = slim_constants(traced, keep={n for n, _ in model.named_parameters()})
     slimmed["node_metadata_bytes"] = strip_node_metadata(traced)
+    # From here the large initializers live in `store`, not in the protos (inference.onnx_weights):
+    # a model over 2 GiB (the MASt3R backbone) cannot be one protobuf.
+    store = detach(traced)
     whole, stage1, view = split_model(traced, names)
     meta = {
         "splat_sap.format": FORMAT_VERSION,
@@ -263,25 +283,22 @@ def export_onnx(
     models = {None: whole, "stage1": stage1, "view": view}
     for part, proto in models.items():
         set_metadata(proto, _part_metadata(meta, part, proto))
-    _save(whole, path)
-    parts = []
-    for part in ("stage1", "view"):
-        parts.append(part_path(path, part))
-        _save(models[part], parts[-1])
+    parts = [part_path(path, part) for part in ("stage1", "view")]
+    data = [write_models([(whole, path), (stage1, parts[0]), (view, parts[1])], store, _save, external_data_limit)]
     fp16_path = None
     if fp16:
         # Each file converted on its own: a stage-1 tensor the learned layers compute in float16
         # leaves the stage1 part cast to float32 (as the whole file casts it for depth_init) and
         # enters the view part as float32, so the parts still compute what the whole file does.
         fp16_path = path.with_name(path.stem + ".fp16.onnx")
+        halves = []
         for part, proto in models.items():
-            half = to_fp16(proto)
+            half = to_fp16(proto, store)
             set_metadata(half, {**_part_metadata(meta, part, proto), "splat_sap.precision": "fp16"})
-            target = fp16_path if part is None else part_path(fp16_path, part)
-            _save(half, target)
-            if part is not None:
-                parts.append(target)
-    return ExportResult(path, fp16_path, names, opset, tuple(parts), slimmed)
+            halves.append((half, fp16_path if part is None else part_path(fp16_path, part)))
+        data.append(write_models(halves, store, _save, external_data_limit))
+        parts += [target for _, target in halves[1:]]
+    return ExportResult(path, fp16_path, names, opset, tuple(parts), slimmed, tuple(d for d in data if d is not None))
 
 
 def _part_metadata(meta: dict[str, str], part: str | None, proto: onnx.ModelProto) -> dict[str, str]:
@@ -497,12 +514,10 @@ def _fold_constants(model) -> None:
 def _save(proto: onnx.ModelProto, path: Path) -> None:
     """Write atomically so that a failed export never leaves a torn model behind.
 
-    The model is one self-contained file (the exporter runs with external_data=False, and none is
-    written here). Were external data ever needed, its file name would have to be given from the
-    final name (location=path.name + ".data"): onnx records it relative to the model's folder,
-    which the rename keeps, but a name derived from the temporary would dangle after the rename,
-    and the data file itself would not be written atomically. The temporary keeps the .onnx
-    suffix, from which onnx.save_model picks the protobuf format.
+    `proto` is written as it is: self-contained, or referring to an external-data file that
+    inference.onnx_weights.write_models wrote beforehand (atomically, under a name given from the
+    final model name, which onnx records relative to the model's folder; the rename keeps it). The
+    temporary keeps the .onnx suffix, from which onnx.save_model picks the protobuf format.
     """
     try:
         with atomic_path(path) as tmp:

@@ -4,6 +4,8 @@ A checkpoint is one torch file: {"format": "splat-sap", "version": 1, "config": 
 "state_dict": ..., "meta": {...}}. An exported ONNX file records its weights' source as JSON in
 its metadata ("splat_sap.weights"): {"source": "seed", "seed": 0} for an untrained model (torch
 rebuilds the same weights from the seed) or {"source": "checkpoint", "path": ..., "sha256": ...}.
+An untrained model whose MASt3R backbone was loaded from the user's weights file adds
+"backbone_weights": {"path": ..., "sha256": ...} (the file is read again, never copied).
 `rig model check` uses that record to rebuild the torch model it compares ONNX Runtime with.
 """
 from __future__ import annotations
@@ -18,6 +20,7 @@ import torch
 from common.files import atomic_path
 from inference.config import ModelConfig
 from inference.errors import InferenceError, OutputError
+from inference.model.mast3r_weights import MASt3RWeights, backbone_net, load_into, read_weights
 from inference.model.pipeline import SplatSAP, build_model
 
 FORMAT = "splat-sap"
@@ -71,8 +74,43 @@ def load_checkpoint(path: str | os.PathLike) -> SplatSAP:
     return model.eval()
 
 
-def seed_record(seed: int) -> str:
-    return json.dumps({"source": "seed", "seed": int(seed)})
+def seed_record(seed: int, backbone_weights: dict | None = None) -> str:
+    rec = {"source": "seed", "seed": int(seed)}
+    if backbone_weights:
+        rec["backbone_weights"] = backbone_weights
+    return json.dumps(rec)
+
+
+def backbone_weights_record(path: str | os.PathLike) -> dict:
+    """Where a model's MASt3R weights came from (the user's file: recorded, never copied)."""
+    path = Path(path).resolve()
+    return {"path": str(path), "sha256": file_digest(path)}
+
+
+def configure_for_weights(cfg: ModelConfig, weights: MASt3RWeights) -> ModelConfig:
+    """A copy of `cfg` with the MASt3R depths the weights' file records."""
+    cfg = ModelConfig.from_dict(cfg.to_dict())
+    if cfg.backbone.kind != "mast3r":
+        raise InferenceError(f"--weights loads MASt3R weights, but the model's backbone is {cfg.backbone.kind}")
+    cfg.backbone.mast3r_encoder_blocks = weights.arch.encoder_blocks
+    cfg.backbone.mast3r_decoder_blocks = weights.arch.decoder_blocks
+    return cfg
+
+
+def build_with_weights(cfg: ModelConfig, weights_path: str | os.PathLike, seed: int | None = 0) -> tuple[SplatSAP, MASt3RWeights]:
+    """An untrained model (seeded) whose MASt3R backbone holds the weights of `weights_path`,
+    at the depths that file records. One-line InferenceError for a bad file."""
+    weights = read_weights(weights_path)
+    model = build_model(configure_for_weights(cfg, weights), seed=seed)
+    load_into(backbone_net(model), weights)
+    return model, weights
+
+
+def load_backbone_weights(model: SplatSAP, weights_path: str | os.PathLike) -> MASt3RWeights:
+    """Replace the MASt3R backbone's weights of `model` by those of the file (same depths)."""
+    weights = read_weights(weights_path)
+    load_into(backbone_net(model), weights)
+    return weights
 
 
 def checkpoint_record(path: str | os.PathLike) -> str:
@@ -80,14 +118,27 @@ def checkpoint_record(path: str | os.PathLike) -> str:
     return json.dumps({"source": "checkpoint", "path": str(path), "sha256": file_digest(path)})
 
 
-def model_from_record(cfg: ModelConfig, record: str, checkpoint: str | os.PathLike | None = None) -> SplatSAP:
-    """Rebuild the torch model an ONNX file was exported from (`checkpoint` overrides the recorded path)."""
+def model_from_record(cfg: ModelConfig, record: str, checkpoint: str | os.PathLike | None = None,
+                      weights: str | os.PathLike | None = None) -> SplatSAP:
+    """Rebuild the torch model an ONNX file was exported from (`checkpoint` overrides the recorded
+    path; `weights` the recorded MASt3R weights file)."""
     try:
         rec = json.loads(record)
     except json.JSONDecodeError:
         raise InferenceError("the model's weights record is not valid JSON; export it again with `rig model export`") from None
     if checkpoint is None and rec.get("source") == "seed":
-        return build_model(cfg, seed=int(rec.get("seed", 0)))
+        model = build_model(cfg, seed=int(rec.get("seed", 0)))
+        backbone = rec.get("backbone_weights") or {}
+        if backbone or weights is not None:
+            path = weights if weights is not None else backbone.get("path")
+            if not path or not Path(path).is_file():
+                raise InferenceError(f"the model was exported with the MASt3R weights {path}, which are not here: pass --weights")
+            if backbone.get("sha256") and file_digest(path) != backbone["sha256"]:
+                raise InferenceError(f"{path}: not the MASt3R weights the model was exported with (sha256 differs)")
+            load_backbone_weights(model, path)
+        return model
+    if weights is not None:
+        raise InferenceError("--weights: the model was exported from a checkpoint, which holds its backbone's weights")
     if checkpoint is None and rec.get("source") == "checkpoint":
         checkpoint = rec.get("path")
         if (not checkpoint or not Path(checkpoint).is_file()) and rec.get("sha256"):

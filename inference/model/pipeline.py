@@ -26,6 +26,7 @@ from inference.config import STAGES, ModelConfig
 from inference.model.backbone import Backbone, OracleBackbone, TinyBackbone, confidence_to_opacity
 from inference.model.depth_init import DepthInit
 from inference.model.geometry import relative_pose, resize_intrinsics
+from inference.model.mast3r import MASt3RBackbone
 from inference.model.splat import PlaneSplatter
 from inference.model.stage1 import AffineTransform
 from inference.model.stereo_backbone import StereoBackbone
@@ -40,7 +41,7 @@ OUTPUT_NAMES = ("image", "depth")
 STAGE1_OUTPUT_NAMES = ("stage1_points_left", "stage1_points_right", "stage1_opacity_left", "stage1_opacity_right")
 
 
-BACKBONES = {"tiny": TinyBackbone, "oracle": OracleBackbone, "stereo": StereoBackbone}
+BACKBONES = {"tiny": TinyBackbone, "oracle": OracleBackbone, "stereo": StereoBackbone, "mast3r": MASt3RBackbone}
 
 
 def build_backbone(cfg, coarse_size: tuple[int, int]) -> Backbone:

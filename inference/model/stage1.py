@@ -6,7 +6,8 @@
   The MLP's last layer starts at zero and S = baseline * exp(r tanh(MLP / r)) (r the
   scale_log_range bound, exp(MLP) near zero): an untrained model scales a
   canonical point map (mean distance 1) by the baseline, the right order for a rig whose cameras
-  stand about as far from the actors as from each other.
+  stand about as far from the actors as from each other. For metric point maps (the MASt3R metric
+  checkpoint; Stage1Config.scale_reference = "one") S = exp(r tanh(MLP / r)) starts at 1.
 - Translation T (per pixel): a RAFT-style ConvGRU at 1/stride of the coarse size. Each iteration
   projects the current points S X + T of view i into the other view j, samples j's features there
   (4-D grid_sample), correlates them with i's, and updates T by at most translation_step
@@ -61,6 +62,7 @@ class ScaleHead(nn.Module):
         self.wv = nn.Linear(d, d)
         self.frequencies = cfg.pe_frequencies
         self.log_range = cfg.scale_log_range
+        self.per_baseline = cfg.scale_reference == "baseline"
         pe_dim = 5 * (1 + 2 * cfg.pe_frequencies)
         self.mlp = nn.Sequential(
             nn.Linear(2 * d + pe_dim, cfg.mlp_hidden), nn.ReLU(), nn.Linear(cfg.mlp_hidden, cfg.mlp_hidden), nn.ReLU(), nn.Linear(cfg.mlp_hidden, 3)
@@ -88,7 +90,9 @@ class ScaleHead(nn.Module):
         # Focal lengths are normalised by the image width (resolution-free); the baseline enters as its log.
         e = positional_encoding(torch.cat([focal_left, focal_right, torch.log(baseline.clamp(min=1e-6))[:, None]], dim=1), self.frequencies)
         raw = self.mlp(torch.cat([f_s, f_c, e], dim=1))
-        return baseline[:, None] * torch.exp(self.log_range * torch.tanh(raw / self.log_range))
+        s = torch.exp(self.log_range * torch.tanh(raw / self.log_range))
+        # Canonical point maps start scaled by the baseline; metric ones (MASt3R's) at S = 1.
+        return baseline[:, None] * s if self.per_baseline else s
 
 
 class ConvGRU(nn.Module):

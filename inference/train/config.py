@@ -14,6 +14,9 @@ from typing import Any
 from inference.config import ModelConfig, Sizes
 from inference.errors import InferenceError
 
+# Backbones that start from weights the user gives (--weights) rather than from scratch.
+PRETRAINED_BACKBONES = ("mast3r",)
+
 
 @dataclass
 class StageSchedule:
@@ -77,6 +80,9 @@ class TrainConfig:
     eval_sets: int = 4  # held-out frame sets rendered at each evaluation
     checkpoint_every: int = 100  # steps between checkpoints (one is also written at each evaluation and at the end)
     seed: int = 0
+    # A pretrained backbone (mast3r, PRETRAINED_BACKBONES) stays frozen in stage 1 unless this is set
+    # (fine-tuning); backbones trained from scratch (stereo, tiny) always train.
+    train_backbone: bool = False
 
     def check(self) -> None:
         self.stage1.check("stage1")
@@ -87,10 +93,16 @@ class TrainConfig:
             raise InferenceError("chamfer_start and chamfer_ramp are fractions of stage 1, from 0 to 1")
         if not self.render_scales or any(not isinstance(v, int) or v < 1 for v in self.render_scales):
             raise InferenceError(f"render_scales must be integers >= 1, got {self.render_scales!r}")
+        if not isinstance(self.train_backbone, bool):
+            raise InferenceError(f"train_backbone must be true or false, got {self.train_backbone!r}")
         for name in ("supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise InferenceError(f"{name} must be an integer >= 1, got {v!r}")
+
+    @property
+    def backbone_trainable(self) -> bool:
+        return self.model.backbone.kind not in PRETRAINED_BACKBONES or bool(self.train_backbone)
 
     def gamma_at(self, step: int) -> float:
         """The Chamfer weight at stage-1 step `step` (0-based)."""

@@ -32,7 +32,7 @@ from common.files import atomic_path, atomic_write_json
 from inference.errors import InferenceError, OutputError
 from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
 from inference.model.pipeline import SplatSAP, build_model
-from inference.train.config import StageSchedule, TrainConfig
+from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
 from inference.train.data import FrameSource, Preprocessor, stack_views
 from inference.train.plots import save_loss_curve, save_samples
 from inference.train.stages import Batch, Stage1Loss, Stage2Loss
@@ -52,7 +52,8 @@ def _rank_world() -> tuple[int, int]:
 class Trainer:
     def __init__(self, cfg: TrainConfig, data: FrameSource, out_dir: str | os.PathLike, *, resume: bool = False,
                  eval_data: Optional[FrameSource] = None, progress: Optional[Progress] = None,
-                 describe: Optional[dict] = None, init: Optional[str | os.PathLike] = None):
+                 describe: Optional[dict] = None, init: Optional[str | os.PathLike] = None,
+                 backbone_weights: Optional[str | os.PathLike] = None):
         cfg.check()
         self.cfg = cfg
         self.data = data
@@ -81,6 +82,14 @@ class Trainer:
                 _check_fresh(self.out)
             if init is not None:
                 self._init_from(Path(init))
+            elif backbone_weights is not None:
+                # A fresh run on a pretrained backbone: its weights from the user's file (a
+                # resumed or --init run has them in its checkpoint).
+                from inference.model.checkpoint import load_backbone_weights
+
+                load_backbone_weights(self.model, backbone_weights)
+            elif cfg.model.backbone.kind in PRETRAINED_BACKBONES:
+                raise InferenceError(f"the {cfg.model.backbone.kind} backbone is pretrained: give its weights (--weights PATH)")
         self.model.to(self.device)
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -186,7 +195,11 @@ class Trainer:
         first = [m.point_init, m.affine_transform]
         for p in m.parameters():
             p.requires_grad_(False)
-        trainable = first if stage == 1 else [mod for mod in m.children() if all(mod is not f for f in first)]
+        if stage == 1:
+            # A pretrained backbone (MASt3R) stays frozen unless train_backbone (--train-backbone).
+            trainable = first if self.cfg.backbone_trainable else [m.affine_transform]
+        else:
+            trainable = [mod for mod in m.children() if all(mod is not f for f in first)]
         for mod in trainable:
             for p in mod.parameters():
                 p.requires_grad_(True)

@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 
 SIZES = ("preview", "paper", "test")
+WEIGHTS_HELP = ("the MASt3R checkpoint (MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth from naver/mast3r; "
+                "CC BY-NC-SA 4.0, non-commercial: rig never ships it)")
 
 
 def register(subparsers) -> None:
@@ -21,9 +23,11 @@ def register(subparsers) -> None:
     e = sub.add_parser("export", help="export the model to ONNX",
                        description="Export the pipeline to one ONNX file (opset 18+): inputs are the left and right images, "
                                    "their intrinsics and poses, and the target intrinsics and pose; outputs the novel view and its depth.")
-    e.add_argument("--backbone", choices=("stereo", "tiny", "oracle"),
+    e.add_argument("--backbone", choices=("stereo", "tiny", "oracle", "mast3r"),
                    help="export an untrained model (seeded initialisation) with this point-map backbone: stereo (calibrated "
-                        "plane sweep), tiny (two-view ViT) or oracle (ground-truth depth as extra inputs)")
+                        "plane sweep), tiny (two-view ViT), oracle (ground-truth depth as extra inputs) or mast3r (the "
+                        "pretrained MASt3R network, its weights from --weights)")
+    e.add_argument("--weights", metavar="PATH", help=f"with --backbone mast3r: {WEIGHTS_HELP}")
     e.add_argument("--checkpoint", metavar="CKPT",
                    help="trained weights, e.g. from rig train (default, without --backbone: the shipped model, models/)")
     e.add_argument("--size", choices=SIZES, default="paper",
@@ -40,6 +44,7 @@ def register(subparsers) -> None:
                                    "and report the largest differences of the image (in [0, 1]) and the depth (metres).")
     c.add_argument("model", metavar="model.onnx")
     c.add_argument("--checkpoint", metavar="CKPT", help="the checkpoint it was exported from, if not at its recorded path")
+    c.add_argument("--weights", metavar="PATH", help="the MASt3R weights it was exported with, if not at their recorded path")
     c.add_argument("--snapshot", metavar="DIR", help="inputs from a `rig sim snapshot` folder (default: built-in synthetic inputs)")
     c.add_argument("--left", default="left", help="source camera name in the snapshot (default left)")
     c.add_argument("--right", default="right", help="source camera name in the snapshot (default right)")
@@ -55,8 +60,12 @@ def register(subparsers) -> None:
     b.add_argument("--size", default="preview",
                    help="size preset(s), comma-separated: preview, paper, test (default preview; e.g. preview,paper)")
     b.add_argument("--model", metavar="model.onnx", help="benchmark this exported model (default: export one at --size)")
-    b.add_argument("--backbone", choices=("stereo", "tiny", "oracle"), default="tiny", help="backbone (default tiny)")
+    b.add_argument("--backbone", choices=("stereo", "tiny", "oracle", "mast3r"), default="tiny", help="backbone (default tiny)")
     b.add_argument("--checkpoint", metavar="CKPT", help="trained weights (default: untrained)")
+    b.add_argument("--weights", metavar="PATH", help=f"with --backbone mast3r: {WEIGHTS_HELP} (default: random weights, the same arithmetic)")
+    b.add_argument("--mast3r-blocks", metavar="ENC,DEC",
+                   help="with --backbone mast3r and random weights: encoder and decoder depth (default 24,12, the checkpoint's; "
+                        "fewer for a quick CPU run, whose point-init time is then not the model's)")
     b.add_argument("--repeat", type=int, default=5, help="timed runs of each (default 5; medians are reported)")
     b.add_argument("--threads", type=int, help="CPU threads for both torch and ONNX Runtime (default: theirs)")
     b.add_argument("--providers", help="comma-separated ONNX Runtime providers (default: best installed)")
@@ -69,8 +78,13 @@ def register(subparsers) -> None:
                                    "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth (simulator "
                                    "takes) and the frame-to-frame jitter of stage 1's scaling S; with the oracle pipeline (same stage-2 "
                                    "weights) and the nearer source image as references. LPIPS is not reported (it needs pretrained weights).")
-    v.add_argument("--model", required=True, metavar="MODEL",
+    v.add_argument("--model", metavar="MODEL",
                    help="a checkpoint (.pt, e.g. from rig train) or an ONNX export of one (its recorded checkpoint is used)")
+    v.add_argument("--backbone", choices=("mast3r",),
+                   help="instead of --model: the untrained pipeline on this pretrained backbone (stage 1's S = 1, T = 0: "
+                        "MASt3R's own geometry), its weights from --weights")
+    v.add_argument("--weights", metavar="PATH", help=f"with --backbone mast3r, or for an export made with them: {WEIGHTS_HELP}")
+    v.add_argument("--size", choices=SIZES, default="paper", help="with --backbone: model sizes (default paper)")
     v.add_argument("--sequence", required=True, nargs="+", type=Path, metavar="SEQ",
                    help="sequence folders (a rig sim dataset folder stands for its takes)")
     v.add_argument("--every", type=int, default=1, help="use every k-th frame set (default 1)")
@@ -119,6 +133,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     if args.opset < 18:
         raise InferenceError(f"--opset {args.opset}: the pipeline needs opset 18 or later")
+    if args.checkpoint and args.weights:
+        raise InferenceError("--weights: a checkpoint holds its backbone's weights already; give one of them")
+    _check_weights_args(args)
     _check_export_output(args)  # before torch loads (seconds)
 
     from inference.config import ModelConfig, Sizes
@@ -132,12 +149,22 @@ def cmd_export(args: argparse.Namespace) -> int:
         from inference.runtime.shipped import shipped_checkpoint
 
         args.checkpoint = str(shipped_checkpoint())
+    licence = None
     if args.checkpoint:
         model = load_checkpoint(args.checkpoint)
         if args.backbone is not None and model.cfg.backbone.kind != args.backbone:
             raise InferenceError(f"{args.checkpoint}: the checkpoint has the {model.cfg.backbone.kind} backbone, not {args.backbone}")
         weights = checkpoint_record(args.checkpoint)
         trained = True
+        if model.cfg.backbone.kind == "mast3r":
+            licence = _licence_note(f"{args.checkpoint} holds MASt3R weights")
+    elif args.backbone == "mast3r":
+        from inference.model.checkpoint import backbone_weights_record, build_with_weights, seed_record
+
+        model, _ = build_with_weights(ModelConfig.for_backbone("mast3r", Sizes.preset(args.size)), args.weights)
+        licence = _licence_note(f"loaded {args.weights}")
+        weights = seed_record(0, backbone_weights_record(args.weights))
+        trained = False
     else:
         model = build_model(ModelConfig.for_backbone(args.backbone, Sizes.preset(args.size)))
         weights = None
@@ -155,18 +182,45 @@ def cmd_export(args: argparse.Namespace) -> int:
         "opset": result.opset,
         "inputs": list(result.inputs),
         "outputs": ["image", "depth"],
-        "weights": "checkpoint" if trained else "untrained (seeded initialisation)",
+        "weights": "checkpoint" if trained else ("MASt3R backbone from --weights, the rest untrained (seeded initialisation)"
+                                                 if args.backbone == "mast3r" else "untrained (seeded initialisation)"),
         "parameters": sum(p.numel() for p in model.parameters()),
     }
+    if result.data_files:
+        info["data_files"] = [str(p) for p in result.data_files]
+    if licence:
+        info["licence"] = licence
     if args.json:
         emit_json(info)
     else:
-        for f in files + parts:
+        for f in files + parts + info.get("data_files", []):
             print(f"wrote {f}")
         print(f"backbone {info['backbone']}, sizes {info['sizes']}, opset {info['opset']}, {info['parameters']:,} parameters, weights: {info['weights']}")
         if not trained:
             print("note: the weights are untrained; train a checkpoint and export it with --checkpoint for real output", file=sys.stderr)
     return 0
+
+
+def _check_weights_args(args: argparse.Namespace) -> None:
+    """--backbone mast3r and --weights go together (checked before torch loads)."""
+    from inference.errors import InferenceError
+
+    weights = getattr(args, "weights", None)
+    if weights is not None and getattr(args, "backbone", None) != "mast3r":
+        raise InferenceError("--weights gives the MASt3R backbone's weights: use it with --backbone mast3r")
+    if getattr(args, "backbone", None) == "mast3r" and weights is None and not getattr(args, "checkpoint", None):
+        raise InferenceError(f"--backbone mast3r needs --weights PATH: {WEIGHTS_HELP}")
+    if weights is not None and not Path(weights).is_file():
+        raise InferenceError(f"{weights}: no such MASt3R weights file")
+
+
+def _licence_note(what: str) -> str:
+    """Say the MASt3R weights' licence (on stderr) whenever they are loaded; returns the line."""
+    from inference.model.mast3r_weights import LICENCE
+
+    line = f"{what}: {LICENCE}"
+    print(f"note: {line}", file=sys.stderr)
+    return line
 
 
 def _check_export_output(args: argparse.Namespace) -> None:
@@ -234,7 +288,11 @@ def cmd_check(args: argparse.Namespace) -> int:
     cfg = pipe.info.config
     if pipe.info.precision != "fp32":
         raise InferenceError(f"{args.model}: check the fp32 model; the {pipe.info.precision} variant differs from torch by its precision")
-    model = model_from_record(cfg, pipe.info.weights, args.checkpoint)
+    if args.weights is not None and not Path(args.weights).is_file():
+        raise InferenceError(f"{args.weights}: no such MASt3R weights file")
+    model = model_from_record(cfg, pipe.info.weights, args.checkpoint, args.weights)
+    if cfg.backbone.kind == "mast3r":
+        _licence_note(f"{args.model} runs MASt3R weights")
     if args.snapshot:
         lc, rc, tc, (limg, ldep), (rimg, rdep) = _snapshot_inputs(args.snapshot, args.left, args.right, args.target)
         if pipe.info.needs_depth and (ldep is None or rdep is None):
@@ -279,6 +337,22 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise InferenceError(f"--size {args.size}: unknown size {', '.join(bad) or '(none)'} (allowed: {', '.join(SIZES)})")
     if args.model:
         sizes = sizes[:1]  # the model's own sizes
+    blocks = None
+    if args.mast3r_blocks is not None:
+        try:
+            blocks = tuple(int(v) for v in args.mast3r_blocks.split(","))
+        except ValueError:
+            blocks = ()
+        if len(blocks) != 2 or blocks[0] < 1 or blocks[1] < 2:
+            raise InferenceError(f"--mast3r-blocks {args.mast3r_blocks}: give ENC,DEC with ENC >= 1 and DEC >= 2 (the checkpoint's: 24,12)")
+        if args.backbone != "mast3r" or args.weights or args.checkpoint or args.model:
+            raise InferenceError("--mast3r-blocks reduces the random-weight MASt3R backbone: use it with --backbone mast3r alone")
+    if args.weights is not None:
+        if args.backbone != "mast3r" or args.checkpoint or args.model:
+            raise InferenceError("--weights gives the MASt3R backbone's weights: use it with --backbone mast3r (no --checkpoint, --model)")
+        if not Path(args.weights).is_file():
+            raise InferenceError(f"{args.weights}: no such MASt3R weights file")
+        _licence_note(f"loading {args.weights}")
     status = _status()
     runs = []
     for size in sizes:
@@ -292,6 +366,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
                 device=args.device,
                 checkpoint=args.checkpoint,
                 model_path=args.model,
+                weights=args.weights,
+                mast3r_blocks=blocks,
                 progress=lambda text, size=size: status.update(f"{size}: {text}", force=True),
             )
         )
@@ -313,22 +389,37 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise ConfigError(f"--every must be at least 1, got {args.every}")
     if args.max_sets is not None and args.max_sets < 1:
         raise ConfigError(f"--max-sets must be at least 1, got {args.max_sets}")
-    model_path = Path(args.model)
-    if not model_path.is_file():
+    if (args.model is None) == (args.backbone is None):
+        raise ConfigError("give --model MODEL, or --backbone mast3r --weights PATH (the untrained pipeline on MASt3R)")
+    if args.backbone is not None and args.weights is None:
+        raise ConfigError(f"--backbone mast3r needs --weights PATH: {WEIGHTS_HELP}")
+    if args.weights is not None and not Path(args.weights).is_file():
+        raise ConfigError(f"{args.weights}: no such MASt3R weights file")
+    model_path = Path(args.model) if args.model else None
+    if model_path is not None and not model_path.is_file():
         raise ConfigError(f"{model_path}: no such model")
     sequences = expand_sequences(args.sequence)
 
     from inference.evaluate.model_eval import evaluate
-    from inference.model.checkpoint import load_checkpoint, model_from_record
+    from inference.model.checkpoint import build_with_weights, load_checkpoint, model_from_record
 
-    if model_path.suffix == ".onnx":
+    if model_path is None:
+        from inference.config import ModelConfig, Sizes
+
+        model, _ = build_with_weights(ModelConfig.for_backbone("mast3r", Sizes.preset(args.size)), args.weights)
+        model_path = Path(args.weights)
+    elif model_path.suffix == ".onnx":
         from inference.config import ModelConfig
         from inference.runtime.metadata import read_file_metadata
 
         meta = read_file_metadata(model_path)
-        model = model_from_record(ModelConfig.from_json(meta["splat_sap.config"]), meta["splat_sap.weights"])
+        model = model_from_record(ModelConfig.from_json(meta["splat_sap.config"]), meta["splat_sap.weights"], weights=args.weights)
     else:
+        if args.weights is not None:
+            raise ConfigError("--weights: a checkpoint holds its backbone's weights already; give one of them")
         model = load_checkpoint(model_path)
+    if model.cfg.backbone.kind == "mast3r":
+        _licence_note(f"{model_path} runs MASt3R weights" if args.model else f"loaded {args.weights}")
     if model.needs_depth:
         raise ConfigError(f"{model_path}: an oracle model reads ground-truth depth; evaluate a trained model")
     data = TrainingSet(sequences)

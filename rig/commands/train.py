@@ -30,7 +30,14 @@ def register(sub) -> None:
     p.add_argument("--init", type=Path, metavar="CKPT",
                    help="start a new run (its own schedule) from the weights of a checkpoint of the same model configuration")
     p.add_argument("--size", choices=("paper", "preview", "test"), help="model sizes (default preview)")
-    p.add_argument("--backbone", choices=("stereo", "tiny"), help="point-map backbone (default stereo)")
+    p.add_argument("--backbone", choices=("stereo", "tiny", "mast3r"),
+                   help="point-map backbone (default stereo); mast3r: the pretrained MASt3R network, its weights from --weights, "
+                        "frozen unless --train-backbone")
+    p.add_argument("--weights", type=Path, metavar="PATH",
+                   help="with --backbone mast3r: the MASt3R checkpoint (MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth from "
+                        "naver/mast3r; CC BY-NC-SA 4.0, non-commercial: rig never ships it)")
+    p.add_argument("--train-backbone", action="store_true",
+                   help="fine-tune a pretrained backbone (mast3r) in stage 1 instead of keeping it frozen")
     p.add_argument("--stage1-steps", type=int, help="stage-1 steps")
     p.add_argument("--stage2-steps", type=int, help="stage-2 steps")
     p.add_argument("--batch", type=int, help="frame sets per step in both stages (global batch)")
@@ -73,6 +80,8 @@ def build_config(args: argparse.Namespace):
         cfg.eval_every = args.eval_every
     if args.seed is not None:
         cfg.seed = args.seed
+    if args.train_backbone:
+        cfg.train_backbone = True
     cfg.check()
     return cfg
 
@@ -119,6 +128,17 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.init}: no such checkpoint")
     if args.resume and not (out / "checkpoint.pt").is_file():
         raise ConfigError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
+    pretrained = cfg.model.backbone.kind == "mast3r"
+    if args.weights is not None:
+        if not pretrained:
+            raise ConfigError("--weights gives the MASt3R backbone's weights: use it with --backbone mast3r")
+        if args.resume or args.init is not None:
+            raise ConfigError("--weights starts a new run's backbone; --resume and --init take the weights from their checkpoint")
+        if not args.weights.is_file():
+            raise ConfigError(f"{args.weights}: no such MASt3R weights file")
+    elif pretrained and not args.resume and args.init is None:
+        raise ConfigError("--backbone mast3r needs --weights PATH (the MASt3R checkpoint MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth; "
+                          "rig never ships it)")
     data = TrainingSet(expand_sequences(args.sequences))
     if args.nproc > 1 and "WORLD_SIZE" not in os.environ:
         return _relaunch(args)
@@ -127,6 +147,21 @@ def cmd_train(args: argparse.Namespace) -> int:
     import torch.distributed as dist
 
     from inference.train.trainer import Trainer
+
+    weights_record = None
+    if args.weights is not None:
+        from inference.model.checkpoint import backbone_weights_record, configure_for_weights
+        from inference.model.mast3r_weights import LICENCE, read_weights
+
+        # The depths the weights' file records (the full checkpoint: 24 + 12 blocks).
+        cfg.model = configure_for_weights(cfg.model, read_weights(args.weights))
+        weights_record = backbone_weights_record(args.weights)
+        if int(os.environ.get("RANK", "0")) == 0:
+            print(f"note: loading {args.weights}: {LICENCE}", file=sys.stderr)
+    elif cfg.model.backbone.kind == "mast3r" and int(os.environ.get("RANK", "0")) == 0:
+        from inference.model.mast3r_weights import LICENCE
+
+        print(f"note: the checkpoint holds MASt3R weights: {LICENCE}", file=sys.stderr)
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -149,7 +184,10 @@ def cmd_train(args: argparse.Namespace) -> int:
                     "sources": [data.left, data.right], "supervision": data.supervision, "processes": world}
         if args.init is not None:
             describe["init"] = str(args.init)
-        trainer = Trainer(cfg, data, out, resume=args.resume, progress=progress, describe=describe, init=args.init)
+        if weights_record is not None:
+            describe["backbone_weights"] = weights_record
+        trainer = Trainer(cfg, data, out, resume=args.resume, progress=progress, describe=describe, init=args.init,
+                          backbone_weights=args.weights)
         summary = trainer.run(stop_after=args.stop_after)
     finally:
         if bar is not None:
