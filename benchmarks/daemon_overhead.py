@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -76,7 +77,10 @@ def main() -> int:
     args = ap.parse_args()
     width, height = (int(x) for x in args.size.split("x"))
     tmp = Path(tempfile.mkdtemp(prefix="rig-daemon-bench-"))
-    os.environ["RIG_SHM_ROOT"] = str(tmp / "shm")
+    # the rings in memory, as the daemons' default /dev/shm/rig puts them (a ring in a disk-backed
+    # folder is written back to the disk and measures that too)
+    shm = Path(tempfile.mkdtemp(prefix="rig-daemon-bench-", dir="/dev/shm")) if Path("/dev/shm").is_dir() else tmp
+    os.environ["RIG_SHM_ROOT"] = str(shm / "shm")
     from rig.cameras import open_camera as open_in_process
     from rig.daemon.client import LocalDaemonCamera, open_camera
 
@@ -87,7 +91,7 @@ def main() -> int:
     daemon = subprocess.Popen([sys.executable, "-m", "rig", "daemon", cam_cfg.name, "-c", str(tmp / "rig-1-free.toml"), "--no-advertise"],
                               cwd=REPO, stderr=subprocess.DEVNULL)
     try:
-        wait_for(tmp / "shm" / one.name / f"{cam_cfg.name}.json")
+        wait_for(shm / "shm" / one.name / f"{cam_cfg.name}.json")
         cam = open_camera(cam_cfg)
         assert isinstance(cam, LocalDaemonCamera), type(cam)
         through_daemon = latencies(cam, args.frames)
@@ -104,7 +108,7 @@ def main() -> int:
                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         for c in six.cameras:
-            wait_for(tmp / "shm" / six.name / f"{c.name}.json")
+            wait_for(shm / "shm" / six.name / f"{c.name}.json")
         from rig.capture.session import RigSession
 
         with RigSession(six) as session:
@@ -120,6 +124,8 @@ def main() -> int:
     finally:
         up.send_signal(signal.SIGTERM)
         up.wait(60)
+        if shm != tmp:
+            shutil.rmtree(shm, ignore_errors=True)
     if args.json:
         print(json.dumps(result))
     else:
