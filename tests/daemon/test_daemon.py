@@ -41,6 +41,17 @@ def rig(*args, env, timeout=120) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "rig", *map(str, args)], capture_output=True, text=True, timeout=timeout, cwd=REPO, env=env)
 
 
+def communicate(proc: subprocess.Popen, timeout: float) -> tuple[str, str]:
+    """The process's output once it ends; killed if it does not end in time (a failing test leaves no
+    process behind)."""
+    try:
+        return proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        raise
+
+
 def state(root: Path, rig_name: str) -> dict | None:
     try:
         return json.loads((root / rig_name / "supervisor.json").read_text())
@@ -105,7 +116,7 @@ def _record_while(config: Path, up: Up, seq: Path, seconds: float, fault, at: fl
         if s["pid"] not in (None, victim):
             back = time.monotonic() - hit  # a new daemon process runs
         time.sleep(0.02)
-    out, err = rec.communicate(timeout=120)
+    out, err = communicate(rec, 120)
     return rec.returncode, out, err, back, victim
 
 
@@ -308,7 +319,7 @@ def test_the_trigger_board_daemon_drives_takes_and_a_killed_one_comes_back(tmp_p
             time.sleep(0.05)
         time.sleep(2.0)
         os.kill(state(up.root, "sim-2cam")["cameras"]["@board"]["pid"], signal.SIGKILL)
-        out2, err2 = rec.communicate(timeout=120)
+        out2, err2 = communicate(rec, 120)
         rows2 = [json.loads(line) for line in index.read_text().splitlines() if line.endswith("}")]
         ts = [r["host_ts_ns"] for r in rows2]
         gaps = [i for i, (a, b) in enumerate(zip(ts, ts[1:])) if b - a > 0.5e9]
@@ -341,7 +352,7 @@ def test_a_take_of_known_length_ends_on_time_when_the_board_never_comes_back(tmp
         t_first = time.monotonic()
         up.proc.send_signal(signal.SIGSTOP)  # no supervisor: nothing restarts the board
         os.kill(state(up.root, "sim-2cam")["cameras"]["@board"]["pid"], signal.SIGKILL)
-        out, err = rec.communicate(timeout=30)
+        out, err = communicate(rec, 30)
         took = time.monotonic() - t_first
         assert took < 5 + 6, took  # the take's 5 s from its first set, the stop's settling, the process's exit
         result = json.loads(out)
