@@ -372,6 +372,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             )
         )
     status.done()
+    if args.weights is None and (args.model or args.checkpoint) and runs[0].get("backbone") == "mast3r":
+        _licence_note(f"{args.model or args.checkpoint} runs MASt3R weights")
     if args.json:
         # The first size's figures at the top level; every size's under "runs".
         emit_json({**runs[0], "runs": runs} if len(runs) > 1 else runs[0])

@@ -74,6 +74,11 @@ def test_export_with_external_data_loads_in_the_runtime_and_checks(weights, tmp_
     check = json.loads(stdout)
     assert check["ok"] and check["max_abs_diff_image"] <= 1e-3
     print("rig model check (mast3r 2+2, test size):", check["max_abs_diff_image"], check["max_abs_diff_depth"])
+    # benchmarking the exported model runs the MASt3R weights too: the licence is said (it was not)
+    code, stdout, err = rig(capsys, "model", "bench", "--model", moved / "m.onnx", "--repeat", 1, "--json")
+    assert code == 0, err
+    bench = json.loads(stdout.strip().splitlines()[-1])  # (the check's figures printed above come first)
+    assert bench["backbone"] == "mast3r" and "CC BY-NC-SA 4.0" in err, err
     # The live path's two parts share the one data file.
     from inference.runtime import SplitPipeline
     from inference.runtime.synthetic import example_inputs
