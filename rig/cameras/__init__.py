@@ -57,6 +57,17 @@ def records_to_card(settings) -> bool:
     return bool(check(uri)) if check is not None else False
 
 
+def live_cameras(cameras: list, why: str) -> list:
+    """The cameras that give live frames (not recording to their cards); ConfigError when there is
+    none, `why` saying what needed one."""
+    from rig.errors import ConfigError
+
+    live = [c for c in cameras if not records_to_card(c)]
+    if not live:
+        raise ConfigError(f"every camera of the rig records to its card: {why}")
+    return live
+
+
 def discover_all(errors: list | None = None) -> list:
     """Devices of every backend. A backend that cannot run here (e.g. no Aravis) adds to `errors`."""
     devices = []

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from common.files import atomic_path
-from rig.cameras import open_camera, records_to_card
+from rig.cameras import live_cameras, open_camera, records_to_card
 from rig.capture.session import RigSession, prerender_note
 from rig.config import RigConfig
 from rig.errors import ConfigError, DeviceError, RigError, StorageError
@@ -104,11 +104,9 @@ def grab(cfg: RigConfig, n: int, out_dir: Path, timeout: float = 2.0,
     out_dir = Path(out_dir)
     if (out_dir / INDEX).exists():
         raise ConfigError(f"{out_dir}: already holds a grab; choose a new folder (nothing was overwritten)")
-    live = [c for c in cfg.cameras if not records_to_card(c)]  # a camera recording to its card has no frames to grab
+    live = live_cameras(cfg.cameras, "there are no live frames to grab")  # a camera recording to its card has none
     if len(live) < len(cfg.cameras) and notes is not None:
         notes(f"not grabbing {', '.join(c.name for c in cfg.cameras if c not in live)}: records to its card, no live frames")
-    if not live:
-        raise ConfigError("every camera of the rig records to its card: there are no live frames to grab")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         for c in live:

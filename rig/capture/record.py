@@ -13,12 +13,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
-from rig.cameras import records_to_card
+from rig.cameras import live_cameras
 from rig.config import RigConfig
 from rig.errors import ConfigError
 from rig.progress import StatusLine, rate, rate_text
 from rig.cameras.sim import take_truth
 from rig.capture.cards import CardShutters
+from rig.capture.session import TAKE_NEEDS_LIVE
 from rig.storage.layout import FLASHES
 from rig.storage.recorder import SequenceWriter
 
@@ -115,11 +116,8 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
         calibration = cfg.resolve(cfg.calibration)
         if not calibration.is_file():
             raise ConfigError(f"rig.calibration: {calibration} does not exist (calibrate with `rig calibrate run`, or remove the key)")
-    live = [c for c in cfg.cameras if not records_to_card(c)]  # the cameras of the sets
-    cards = [c.name for c in cfg.cameras if records_to_card(c)]
-    if not live:
-        raise ConfigError("every camera of the rig records to its card: a take needs at least one camera with live "
-                          "frames (its sets and pulses are what the videos are aligned to)")
+    live = live_cameras(cfg.cameras, TAKE_NEEDS_LIVE)  # the cameras of the sets
+    cards = [c.name for c in cfg.cameras if c not in live]
     rate = cfg.trigger.rate_hz if cfg.trigger else max(c.fps for c in live)
     writer = SequenceWriter(out, live, rig_name=cfg.name, rate_hz=rate, config_file=cfg.path,
                             calibration_file=calibration, extra=take_truth(cfg))
@@ -157,7 +155,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                     # to start), the second near the end
                     waiting_for = {c.name for c in live if c.trigger == "free"}
                     flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
-                for fs in _sets(session, lambda: seconds is not None and t_first is not None and time.monotonic() - t_first >= seconds):
+                for fs in session.framesets(until=lambda: seconds is not None and t_first is not None and time.monotonic() - t_first >= seconds):
                     if not writer.write(fs):
                         result.stopped_by = "storage"
                         session.stop()
@@ -230,19 +228,6 @@ def _fetch_media(out: Path, notes: Optional[Callable[[str], None]], errors: list
             left = "" if cam["state"] == "done" else f"; `rig record fetch {out}` resumes the download"
             errors.append(f"{name}: {cam['problem']}{left}")
     return media
-
-
-def _sets(session, over: Callable[[], bool]):
-    """The session's sets until it ends; `over()` is asked also while none arrive (a trigger board
-    gone for good sends none), so a take of known length stops on time whatever came of its sets."""
-    while True:
-        fs = session.next_set(timeout=0.1)
-        if fs is not None:
-            yield fs
-        elif session.finished:
-            return
-        elif over():
-            session.stop()
 
 
 def _status_text(result: RecordResult, writer: SequenceWriter, session, elapsed: float, out: Path) -> str:

@@ -37,7 +37,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Optional
 
-from rig.cameras import open_camera as _open_in_process, records_to_card
+from rig.cameras import live_cameras, open_camera as _open_in_process, records_to_card
 from rig.daemon.client import open_camera as _open_camera  # a camera's daemon when one serves it, else in-process
 from rig.config import RigConfig
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceError
@@ -47,6 +47,7 @@ from sync.frames import FrameSet, monotonic_ns
 from sync.grouping import HARDWARE, TIMED, FrameGrouper
 
 _END = object()
+TAKE_NEEDS_LIVE = "a take needs at least one camera with live frames (its sets and pulses are what the videos are aligned to)"
 MIN_WARM_ROUND_TRIPS = 100  # usable board time replies the clock model holds before the first pulse
 
 
@@ -87,10 +88,7 @@ class RigSession:
         self._on_event = on_event
         self.cameras: dict[str, Any] = {}  # the cameras that give frames
         self.card_cameras: dict[str, Any] = {}  # those that record to their own card (no frames)
-        self.live_configs = [c for c in config.cameras if not records_to_card(c)]
-        if not self.live_configs:
-            raise ConfigError("every camera of the rig records to its card: a take needs at least one camera "
-                              "with live frames (its sets and pulses are what the videos are aligned to)")
+        self.live_configs = live_cameras(config.cameras, TAKE_NEEDS_LIVE)
         self.board: Optional[TriggerBoard] = None
         self.emulator = None  # the emulated board of a sim:// trigger
         self.grouper: Optional[FrameGrouper] = None
@@ -315,14 +313,16 @@ class RigSession:
         """Every set has been handed out (the session stopped and the queue is empty)."""
         return self._finished
 
-    def framesets(self, seconds: Optional[float] = None) -> Iterator[FrameSet]:
-        """Sets as they are grouped, until the session stops (or `seconds` pass: then it stops).
+    def framesets(self, seconds: Optional[float] = None, until: Optional[Callable[[], bool]] = None) -> Iterator[FrameSet]:
+        """Sets as they are grouped, until the session stops (or `seconds` pass, or `until()` is true:
+        then it stops; both are asked also while no set arrives, as when a trigger board is gone).
         Starts the session (a pulse train until stop) if it is not running yet."""
         if not self._started:
             self.start()
         end = None if seconds is None else time.monotonic() + seconds
         while True:
-            if end is not None and time.monotonic() >= end and self._running.is_set():
+            over = (end is not None and time.monotonic() >= end) or (until is not None and until())
+            if over and self._running.is_set():
                 self.stop()
             fs = self.next_set(timeout=0.1)
             if fs is not None:

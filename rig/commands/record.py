@@ -123,6 +123,10 @@ def _print_repair(r: dict) -> None:
     print(f"next: rig record validate {r['path']}")
 
 
+def _rate(c: dict) -> str:
+    return f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else " (one flash: nominal clock rate)"
+
+
 def alignment_lines(r: dict) -> list[str]:
     """A line per camera of an alignment report (rig.storage.align.align)."""
     period_ms = 1e3 / r["rate_hz"]
@@ -131,17 +135,15 @@ def alignment_lines(r: dict) -> list[str]:
         if c["problem"]:
             lines.append(f"{name}: NOT aligned: {c['problem']}")
             continue
-        rate = f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else " (one flash: nominal clock rate)"
         lines.append(f"{name}: {c['placed']} of {c['frames']} frames placed ({c['moved']} moved to another set), uncertainty "
-                     f"{c['error_periods']:.3f} frame periods ({c['error_periods'] * period_ms:.2f} ms){rate}, latency {c['latency_ms']:.1f} ms")
+                     f"{c['error_periods']:.3f} frame periods ({c['error_periods'] * period_ms:.2f} ms){_rate(c)}, latency {c['latency_ms']:.1f} ms")
     for v in r.get("videos", []):  # card cameras' videos: frame numbers to pulses
         what = f"{v['camera']} {v['file']}" if v["file"] else v["camera"]
         if v["problem"]:
             lines.append(f"{what}: NOT aligned: {v['problem']}")
             continue
-        rate = f", clock {v['rate_ppm']:+.0f} ppm" if v["rate_ppm"] is not None else " (one flash: nominal clock rate)"
         lines.append(f"{what}: frame 0 at trigger {v['trigger_at_frame0']:.3f}, {v['pulses_per_frame']:.5f} pulses per frame, "
-                     f"uncertainty {v['error_periods']:.3f} pulse periods ({v['error_frames']:.3f} frames){rate}")
+                     f"uncertainty {v['error_periods']:.3f} pulse periods ({v['error_frames']:.3f} frames){_rate(v)}")
     return lines
 
 

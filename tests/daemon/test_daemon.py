@@ -98,14 +98,20 @@ def six(tmp_path):
     assert not any((up.root / "sim-6cam").glob("*")), "rig up left files behind"  # rings, info and state files are gone
 
 
-def _record_while(config: Path, up: Up, seq: Path, seconds: float, fault, at: float = 3.0):
-    """`rig record` for `seconds` while `fault(daemon pid)` hits the daemon of sup2 `at` seconds in."""
+def start_take(config: Path, up: Up, seq: Path, seconds: float) -> subprocess.Popen:
+    """`rig record --seconds` on `rig up`'s daemons, returned once its sets are being written."""
     rec = subprocess.Popen([sys.executable, "-m", "rig", "record", "-c", str(config), "-o", str(seq), "--seconds", str(seconds), "--json"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=up.env)
     deadline = time.monotonic() + 60
-    while not (seq / INDEX).exists() or (seq / INDEX).stat().st_size < 2000:  # sets are being written
+    while not (seq / INDEX).exists() or (seq / INDEX).stat().st_size < 2000:
         assert rec.poll() is None and time.monotonic() < deadline, rec.communicate()
         time.sleep(0.05)
+    return rec
+
+
+def _record_while(config: Path, up: Up, seq: Path, seconds: float, fault, at: float = 3.0):
+    """`rig record` for `seconds` while `fault(daemon pid)` hits the daemon of sup2 `at` seconds in."""
+    rec = start_take(config, up, seq, seconds)
     time.sleep(at)
     victim = state(up.root, "sim-6cam")["cameras"]["sup2"]["pid"]
     hit = time.monotonic()
@@ -310,13 +316,8 @@ def test_the_trigger_board_daemon_drives_takes_and_a_killed_one_comes_back(tmp_p
         rows = [json.loads(line) for line in (tmp_path / "seq" / INDEX).read_text().splitlines() if line.endswith("}")]
         assert [r["trigger"] for r in rows] == list(range(45))
 
-        rec = subprocess.Popen([sys.executable, "-m", "rig", "record", "-c", str(config), "-o", str(tmp_path / "seq2"), "--seconds", "9",
-                                "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=up.env)
+        rec = start_take(config, up, tmp_path / "seq2", 9)
         index = tmp_path / "seq2" / INDEX
-        deadline = time.monotonic() + 60
-        while not index.exists() or index.stat().st_size < 2000:
-            assert rec.poll() is None and time.monotonic() < deadline, rec.communicate()
-            time.sleep(0.05)
         time.sleep(2.0)
         os.kill(state(up.root, "sim-2cam")["cameras"]["@board"]["pid"], signal.SIGKILL)
         out2, err2 = communicate(rec, 120)
@@ -342,13 +343,7 @@ def test_a_take_of_known_length_ends_on_time_when_the_board_never_comes_back(tmp
     up = Up(config, tmp_path / "shm")
     try:
         wait_running(up.root, "sim-2cam", 2)
-        rec = subprocess.Popen([sys.executable, "-m", "rig", "record", "-c", str(config), "-o", str(tmp_path / "seq"), "--seconds", "5",
-                                "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=up.env)
-        index = tmp_path / "seq" / INDEX
-        deadline = time.monotonic() + 60
-        while not index.exists() or index.stat().st_size < 2000:
-            assert rec.poll() is None and time.monotonic() < deadline, rec.communicate()
-            time.sleep(0.05)
+        rec = start_take(config, up, tmp_path / "seq", 5)
         t_first = time.monotonic()
         up.proc.send_signal(signal.SIGSTOP)  # no supervisor: nothing restarts the board
         os.kill(state(up.root, "sim-2cam")["cameras"]["@board"]["pid"], signal.SIGKILL)
