@@ -81,6 +81,8 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ConfigError(f"--seconds must be more than 0 and at most 3600, got {args.seconds}")
     if args.gopro is not None and not 1 <= args.gopro <= 8:
         raise ConfigError(f"--gopro: between 1 and 8 GoPros, got {args.gopro}")
+    if args.gopro is not None and args.views is not None:
+        raise ConfigError("--views: the GoPro demo does not calibrate (its emulators film the scene, not a board); leave out --views")
     if args.gopro is not None and args.cameras != 6:
         raise ConfigError("--gopro sets the rig's cameras itself (the two sources and the GoPros): leave out --cameras")
     if args.views is not None and args.views < 4:

@@ -8,14 +8,14 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("record", help="record every camera of the rig in sync to a sequence folder; validate or repair one")
+    p = sub.add_parser("record", help="record every camera of the rig in sync to a sequence folder; validate, repair or align one, fetch its card videos")
     p.add_argument("action", nargs="?", choices=("validate", "repair", "align", "fetch"),
                    help="validate DIR | repair DIR | align DIR | fetch DIR (omit to record); repair keeps every good set and "
                         "the original index beside it; align puts free-running cameras' frames (and card cameras' videos) on "
                         "the trigger pulses by the LED flashes the board fired during the take (the original index kept "
                         "beside it); fetch downloads what cameras recording to their cards (gopro://...?record=card) recorded "
                         "during the take and is still missing from it, resuming partial downloads")
-    p.add_argument("dir", nargs="?", type=Path, help="sequence folder (validate / repair)")
+    p.add_argument("dir", nargs="?", type=Path, help="sequence folder (validate / repair / align / fetch)")
     p.add_argument("-c", "--config", type=Path, help="rig configuration (TOML), to record")
     p.add_argument("-o", "--out", type=Path, help="new (or empty) sequence folder, to record")
     g = p.add_mutually_exclusive_group()

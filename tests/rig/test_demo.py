@@ -76,6 +76,7 @@ def test_demo_gopro_records_two_gopros_beside_the_sources_and_aligns_them(tmp_pa
     (["--gopro", "0"], "--gopro"),
     (["--gopro", "9"], "--gopro"),
     (["--gopro", "2", "--cameras", "4"], "--cameras"),
+    (["--gopro", "--views", "8"], "--views"),
 ])
 def test_bad_arguments_are_refused_before_any_work(tmp_path, capsys, argv, fragment):
     start = time.monotonic()
