@@ -13,6 +13,7 @@ from typing import Any
 
 from inference.config import ModelConfig, Sizes
 from inference.errors import InferenceError
+from inference.train.multiview_depth import MultiViewDepthConfig
 
 # Backbones that start from weights the user gives (--weights) rather than from scratch.
 PRETRAINED_BACKBONES = ("mast3r",)
@@ -75,6 +76,14 @@ class TrainConfig:
     # neighbourhood: which plane re-projects the colours right is learned directly. Rendering only
     # the expected depth, people stayed doubled in the supervision views after 600 steps.
     plane_render: float = 1.0
+    # Stage 1 also pulls each source's depth towards multi-view stereo depth from its nearest
+    # supervision cameras (inference/train/multiview_depth.py: images and calibration only, never
+    # ground truth) on the pixels where that depth is trusted: |log z - log z_mvs|, times this weight
+    # (0: off, the paper's objective alone). It stands in for the pretraining a from-scratch backbone
+    # lacks (MASt3R's). Computed once per frame set and cached in the output folder (mvs-depth/).
+    mvs_depth: float = 1.0
+    mvs_neighbours: int = 2  # supervision cameras nearest each source that it is matched against
+    mvs: MultiViewDepthConfig = field(default_factory=MultiViewDepthConfig)
     frame_stride: int = 1  # use every k-th set of each sequence for training
     eval_every: int = 200  # steps between evaluations (sample PNG, loss curve, held-out PSNR)
     eval_sets: int = 4  # held-out frame sets rendered at each evaluation
@@ -95,7 +104,13 @@ class TrainConfig:
             raise InferenceError(f"render_scales must be integers >= 1, got {self.render_scales!r}")
         if not isinstance(self.train_backbone, bool):
             raise InferenceError(f"train_backbone must be true or false, got {self.train_backbone!r}")
-        for name in ("supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
+        if not (isinstance(self.mvs_depth, (int, float)) and self.mvs_depth >= 0):
+            raise InferenceError(f"mvs_depth must be a number >= 0, got {self.mvs_depth!r}")
+        try:
+            self.mvs.check()
+        except ValueError as exc:
+            raise InferenceError(str(exc)) from None
+        for name in ("mvs_neighbours", "supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise InferenceError(f"{name} must be an integer >= 1, got {v!r}")

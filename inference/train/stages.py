@@ -9,6 +9,8 @@ at the sizes the stage compares at. Supervision cameras are the targets; the mod
   (L = beta_l1 L1 + beta_ssim (1 - SSIM)); plus gamma times the symmetric 6-D Chamfer distance
   between the two views' (xyz, rgb) sets. A point counts in the Chamfer only where it projects
   inside the other source's image: parts of the scene one source cannot see have no partner.
+  With `mvs_depth` > 0, plus that weight times the mean |log z - log z_mvs| of both sources' depth
+  against multi-view stereo depth where it is trusted (`SourceDepth`, inference.train.multiview_depth).
 - Stage 2 (`Stage2Loss`): stage 1 frozen; the whole pipeline renders each supervision camera;
   lambda_fine L(C, I_fine) + lambda_render L(render, I).
 """
@@ -31,12 +33,30 @@ from inference.train.point_splat import PointSplatConfig, splat_points
 
 
 @dataclass
+class SourceDepth:
+    """Multi-view stereo depth of both sources at the coarse size, (B, H, W) each, and where it is trusted."""
+
+    left: torch.Tensor
+    left_mask: torch.Tensor
+    right: torch.Tensor
+    right_mask: torch.Tensor
+
+
+def log_depth_error(pred: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean |log pred - log depth| over the masked pixels (0 where none is)."""
+    m = mask.to(pred.dtype)
+    e = (torch.log(pred.clamp(min=1e-4)) - torch.log(depth.clamp(min=1e-4))).abs()
+    return (e * m).sum() / m.sum().clamp(min=1.0)
+
+
+@dataclass
 class Batch:
     left: Views  # (B, ...) at the fine size
     right: Views
     targets: Views  # (B*S, ...) at the stage's comparison size (coarse for stage 1, output for stage 2)
     targets_fine: Views | None  # (B*S, ...) at the fine size (stage 2)
     per_set: int  # S
+    source_depth: SourceDepth | None = None  # stage 1: multi-view stereo depth of the sources (TrainConfig.mvs_depth)
 
     def __len__(self) -> int:
         return self.left.images.shape[0]
@@ -68,9 +88,10 @@ def _overlap(points: torch.Tensor, to_other: torch.Tensor, K: torch.Tensor, size
 
 class Stage1Loss(nn.Module):
     def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1, render_scales: tuple[int, ...] = (1,),
-                 plane_render: float = 0.0):
+                 plane_render: float = 0.0, mvs_depth: float = 0.0):
         super().__init__()
         self.plane_render = plane_render
+        self.mvs_depth = mvs_depth
         self.model = model
         self.w = weights
         self.splat = PointSplatConfig(radius=point_radius)
@@ -102,6 +123,13 @@ class Stage1Loss(nn.Module):
         if self.plane_render > 0 and pm.planes is not None:
             l_planes = self._planes(pm.planes, affine.scale, left_c, right_c, batch, to_target, (cw, ch))
             loss = loss + self.plane_render * l_planes
+        l_mvs = None
+        if self.mvs_depth > 0 and batch.source_depth is not None:
+            sd = batch.source_depth
+            z_right = transform_points(relative_pose(batch.right.poses, batch.left.poses), affine.points_right)[:, 2]
+            l_mvs = 0.5 * (log_depth_error(affine.points_left[:, 2], sd.left, sd.left_mask)
+                           + log_depth_error(z_right, sd.right, sd.right_mask))
+            loss = loss + self.mvs_depth * l_mvs
         # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
         cd = None
         if self.gamma > 0:
@@ -118,6 +146,7 @@ class Stage1Loss(nn.Module):
             metrics = {"loss": float(loss), "render": float(l_render), "gamma": self.gamma,
                        **({"chamfer": float(cd)} if cd is not None else {}),
                        **({"planes": float(l_planes)} if l_planes is not None else {}),
+                       **({"mvs": float(l_mvs)} if l_mvs is not None else {}),
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
                        "coverage": float(render.alpha.mean())}
         return loss, metrics, {"render": render.image.detach(), "truth": render_truth}

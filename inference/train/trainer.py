@@ -6,6 +6,7 @@ Output folder:
     model.pt         the trained model once both stages are done
     train.json       the training config and the sequences
     metrics.jsonl    one JSON line per step (and per evaluation, "eval": true)
+    mvs-depth/       stage 1's multi-view stereo depth of the sources, one file per frame set (a cache)
     samples/step-NNNNNN.png   at each evaluation: renders of held-out sets beside their truth
     loss.png         the loss curves, redrawn at each evaluation
 
@@ -16,10 +17,12 @@ averages the gradients, so N processes step as one process on the whole batch wo
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -31,15 +34,19 @@ from torch.nn.parallel import DistributedDataParallel
 from common.files import atomic_path, atomic_write_json
 from inference.errors import InferenceError, OutputError
 from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
+from inference.model.geometry import invert_pose
+from inference.config import ModelConfig
 from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
 from inference.train.data import FrameSource, Preprocessor, stack_views
 from inference.train.plots import save_loss_curve, save_samples
-from inference.train.stages import Batch, Stage1Loss, Stage2Loss
+from inference.train.multiview_depth import multiview_depth, nearest_cameras
+from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss
 
 CHECKPOINT = "checkpoint.pt"
 FINAL = "model.pt"
 METRICS = "metrics.jsonl"
+MVS_CACHE = "mvs-depth"
 Progress = Callable[[int, int, dict], None]
 
 
@@ -116,7 +123,12 @@ class Trainer:
     def _init_from(self, path: Path) -> None:
         """Start this run's schedule from the weights of an earlier run (fine-tuning, a longer schedule)."""
         data = read_checkpoint(path)
-        if data.get("config") != self.cfg.model.to_dict():
+        try:
+            # Read through ModelConfig: a checkpoint written before a key was added has its default.
+            saved = ModelConfig.from_dict(data.get("config")).to_dict()
+        except (InferenceError, TypeError, ValueError, AttributeError):
+            saved = None
+        if saved != self.cfg.model.to_dict():
             raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (--size, --backbone, --config)")
         self.model.load_state_dict(data["state_dict"])
 
@@ -171,7 +183,8 @@ class Trainer:
 
     def _batch(self, source: FrameSource, items: list[tuple[int, list[str]]], stage: int) -> Batch:
         s = self.cfg.model.sizes
-        lefts, rights, targets, fines = [], [], [], []
+        lefts, rights, targets, fines, depths = [], [], [], [], []
+        want_depth = stage == 1 and self.cfg.mvs_depth > 0 and source is self.data
         for index, sup in items:
             fs = source.frame_set(index)
             lefts.append(self.pre.views(fs, [source.left], s.fine))
@@ -179,8 +192,43 @@ class Trainer:
             targets.append(self.pre.views(fs, sup, s.coarse if stage == 1 else s.output))
             if stage == 2:
                 fines.append(self.pre.views(fs, sup, s.fine))
+            if want_depth:
+                depths.append(self._source_depth(fs))
+        source_depth = None
+        if depths:
+            source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]).to(self.device) for k in range(4)))
         return Batch(stack_views(lefts, self.device), stack_views(rights, self.device), stack_views(targets, self.device),
-                     stack_views(fines, self.device) if fines else None, len(items[0][1]))
+                     stack_views(fines, self.device) if fines else None, len(items[0][1]), source_depth)
+
+    def _source_depth(self, fs) -> tuple[torch.Tensor, ...]:
+        """Multi-view stereo depth of both sources at the coarse size (depth, mask, depth, mask), from
+        the cache in the output folder when this frame set's images and cameras were seen before."""
+        src, coarse = self.data, self.cfg.model.sizes.coarse
+        names = [src.left, src.right] + list(src.supervision)
+        views = self.pre.views(fs, names, coarse)
+        digest = hashlib.blake2b(digest_size=16)
+        for t in (views.images, views.K, views.poses):
+            digest.update(t.numpy().tobytes())
+        digest.update(json.dumps([asdict(self.cfg.mvs), self.cfg.mvs_neighbours]).encode())
+        path = self.out / MVS_CACHE / f"{digest.hexdigest()}.pt"
+        if path.is_file():
+            try:
+                return tuple(torch.load(path, weights_only=True))
+            except Exception:  # a torn or foreign file: compute it again
+                pass
+        baseline = float(torch.linalg.norm(invert_pose(views.poses[0])[:3, 3] - invert_pose(views.poses[1])[:3, 3]))
+        sup = list(range(2, len(names)))
+        out = []
+        for ref in (0, 1):
+            nb = nearest_cameras(views.poses, ref, sup, self.cfg.mvs_neighbours)
+            out += multiview_depth(views.images[ref], views.K[ref], views.poses[ref], views.images[nb], views.K[nb], views.poses[nb],
+                                   self.cfg.mvs.near * baseline, self.cfg.mvs.far * baseline, self.cfg.mvs)
+        try:
+            with atomic_path(path, make_parents=True) as tmp:
+                torch.save(out, tmp)
+        except OSError:
+            pass  # the cache only saves time
+        return tuple(out)
 
     # -- loop -------------------------------------------------------------------------------------
 
@@ -204,7 +252,7 @@ class Trainer:
             for p in mod.parameters():
                 p.requires_grad_(True)
         w = self.cfg.loss
-        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render) if stage == 1 else Stage2Loss(m, w)
+        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth) if stage == 1 else Stage2Loss(m, w)
         params = [p for p in m.parameters() if p.requires_grad]
         if self.world > 1:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)

@@ -161,6 +161,13 @@ def test_a_checkpoint_of_another_configuration_is_refused_and_kept(takes, light,
     first = [m for m in metrics(out) if not m.get("eval")][0]
     again = [m for m in metrics(tmp_path / "again") if not m.get("eval")][0]
     assert again["loss"] != first["loss"]  # same batch, other weights: the run started from the trained ones
+    # A checkpoint written before a configuration key was added (its default applies) is the same model.
+    older = torch.load(out / "model.pt", weights_only=True)
+    del older["config"]["stage1"]["scale_reference"]
+    torch.save(older, tmp_path / "older.pt")
+    r = rig("train", *takes, "-o", tmp_path / "from-older", *SMALL, "--config", light, "--batch", "1", "--stage1-steps", "1",
+            "--stage2-steps", "0", "--init", tmp_path / "older.pt")
+    assert r.returncode == 0, r.stderr
 
 
 def test_an_unwritable_output_folder_is_refused_before_any_work(takes, tmp_path):
