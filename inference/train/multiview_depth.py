@@ -15,7 +15,7 @@ D fronto-parallel planes uniform in inverse depth, the cost averaged over the ne
 takes all with a parabola through the peak. A pixel is trusted where the mean ZNCC peak clears
 `min_score` and stands `min_margin` above every plane more than `margin_planes` from it (no second
 match), every neighbour on its own puts the peak within `agree_planes` planes of the others, and
-the window has texture. On simulator frame sets that keeps about 30 % of each view, at 3-5 % mean
+the window has texture. On simulator frame sets that keeps about 30 % of each view, at 3-6 % mean
 and 1.5 % median error. Stage 1 then pulls the backbone's depth towards it on those pixels
 (`TrainConfig.mvs_depth`), as self-supervised MVS trainers pull towards their own pseudo-labels.
 
