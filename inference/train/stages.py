@@ -43,10 +43,12 @@ class SourceDepth:
 
 
 def log_depth_error(pred: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean |log pred - log depth| over the masked pixels (0 where none is)."""
-    m = mask.to(pred.dtype)
-    e = (torch.log(pred.clamp(min=1e-4)) - torch.log(depth.clamp(min=1e-4))).abs()
-    return (e * m).sum() / m.sum().clamp(min=1.0)
+    """|log pred - log depth| averaged over each item's masked pixels (0 where none is), then over the
+    batch (B, H, W): per item, so that data-parallel processes, each averaging its share of the
+    batch, step as one process on the whole batch."""
+    m = mask.to(pred.dtype).flatten(1)
+    e = (torch.log(pred.clamp(min=1e-4)) - torch.log(depth.clamp(min=1e-4))).abs().flatten(1)
+    return ((e * m).sum(1) / m.sum(1).clamp(min=1.0)).mean()
 
 
 @dataclass

@@ -137,7 +137,10 @@ def test_arc_refuses_t_outside_zero_to_one():
 
 # -- slerp ------------------------------------------------------------------------------------------
 def _angle(q0, q1) -> float:
-    return 2 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
+    # 2 atan2(|q0 - q1|, |q0 + q1|) (q1 on q0's side): exact near 0, where acos(dot) loses half the
+    # digits (a dot product rounded to 1 - 1e-16 reads as 3e-8 rad, and how it rounds varies by CPU).
+    q1 = q1 if float(np.dot(q0, q1)) >= 0 else -q1
+    return 2 * math.atan2(float(np.linalg.norm(q0 - q1)), float(np.linalg.norm(q0 + q1)))
 
 
 @pytest.mark.parametrize("seed", range(5))

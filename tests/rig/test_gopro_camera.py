@@ -106,7 +106,10 @@ def test_a_dropped_link_and_http_errors_are_survived(two):
             cam.reconnect()
     assert lost_at is not None, "the silent stream was never reported"
     assert len(after) >= 30, f"frames did not resume: {len(after)}"
-    assert after[0].host_ts_ns - before[-1].host_ts_ns > 2e9  # the gap: nothing while the link was down
+    # The gap: nothing while the link was down (a frame already on its way when the link dropped
+    # may still come first, on a loaded machine).
+    stamps = [f.host_ts_ns for f in before[-1:] + after]
+    assert max(b - a for a, b in zip(stamps, stamps[1:])) > 2e9
     ids = [f.frame_id for f in before + after]
     assert ids == sorted(set(ids))  # frame ids go on increasing across the camera's new stream
     assert all(abs(float(f.image.mean()) - 40) < 8 for f in after)
