@@ -131,10 +131,10 @@ def multiview_depth(ref_image, ref_K, ref_pose, images, Ks, poses, near: float, 
         raise ValueError(f"depth range must satisfy 0 < near < far, got {near}, {far}")
     inverse_depths = torch.linspace(1.0 / near, 1.0 / far, cfg.planes, dtype=ref_image.dtype)
     costs = sweep_costs(ref_image, ref_K, ref_pose, images, Ks, poses, inverse_depths, cfg)
-    depth, score, best = _peak(costs.mean(0), inverse_depths)
+    mean = costs.mean(0)
+    depth, score, best = _peak(mean, inverse_depths)
     a = _grey(ref_image[None])
     texture = (_box(a * a, cfg.window) - _box(a, cfg.window) ** 2)[0, 0]
-    mean = costs.mean(0)
     away = (torch.arange(cfg.planes)[:, None, None] - best[None]).abs() > cfg.margin_planes
     runner_up = torch.where(away, mean, torch.full_like(mean, -2.0)).max(0).values
     mask = (texture > cfg.min_texture) & torch.isfinite(depth) & (score - runner_up > cfg.min_margin)
@@ -152,3 +152,17 @@ def nearest_cameras(poses: torch.Tensor, ref: int, candidates: list[int], count:
     centres = -poses[:, :3, :3].transpose(1, 2) @ poses[:, :3, 3:]
     dist = [(float(torch.linalg.norm(centres[j] - centres[ref])), j) for j in candidates if j != ref]
     return [j for _, j in sorted(dist)[:count]]
+
+
+def source_depths(views, supervision: list[int], neighbours: int, cfg: MultiViewDepthConfig) -> list[torch.Tensor]:
+    """[depth, mask, depth, mask] of the two sources, views 0 (left) and 1 (right) of `views`
+    (images (N, 3, H, W), K, poses), each from its `neighbours` nearest supervision views; the depth
+    range is cfg.near..cfg.far times the distance between the sources."""
+    centres = invert_pose(views.poses)[:, :3, 3]
+    baseline = float(torch.linalg.norm(centres[0] - centres[1]))
+    out: list[torch.Tensor] = []
+    for ref in (0, 1):
+        nb = nearest_cameras(views.poses, ref, supervision, neighbours)
+        out += multiview_depth(views.images[ref], views.K[ref], views.poses[ref], views.images[nb], views.K[nb], views.poses[nb],
+                               cfg.near * baseline, cfg.far * baseline, cfg)
+    return out

@@ -33,14 +33,13 @@ from torch.nn.parallel import DistributedDataParallel
 
 from common.files import atomic_path, atomic_write_json
 from inference.errors import InferenceError, OutputError
-from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
-from inference.model.geometry import invert_pose
 from inference.config import ModelConfig
+from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
 from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
 from inference.train.data import FrameSource, Preprocessor, stack_views
 from inference.train.plots import save_loss_curve, save_samples
-from inference.train.multiview_depth import multiview_depth, nearest_cameras
+from inference.train.multiview_depth import source_depths
 from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss
 
 CHECKPOINT = "checkpoint.pt"
@@ -216,13 +215,7 @@ class Trainer:
                 return tuple(torch.load(path, weights_only=True))
             except Exception:  # a torn or foreign file: compute it again
                 pass
-        baseline = float(torch.linalg.norm(invert_pose(views.poses[0])[:3, 3] - invert_pose(views.poses[1])[:3, 3]))
-        sup = list(range(2, len(names)))
-        out = []
-        for ref in (0, 1):
-            nb = nearest_cameras(views.poses, ref, sup, self.cfg.mvs_neighbours)
-            out += multiview_depth(views.images[ref], views.K[ref], views.poses[ref], views.images[nb], views.K[nb], views.poses[nb],
-                                   self.cfg.mvs.near * baseline, self.cfg.mvs.far * baseline, self.cfg.mvs)
+        out = source_depths(views, list(range(2, len(names))), self.cfg.mvs_neighbours, self.cfg.mvs)
         try:
             with atomic_path(path, make_parents=True) as tmp:
                 torch.save(out, tmp)
