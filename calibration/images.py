@@ -154,8 +154,12 @@ def _read_roles(path: Path, paths: dict) -> dict[str, str]:
     return roles
 
 
-def read_gray(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+def read_gray(path: Path, data: bytes | None = None) -> np.ndarray:
+    """The image at `path` in grey levels (decoded from `data`, its bytes, when given)."""
+    if data is None:
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    else:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise CalibrationError(f"{path}: cannot read this image (corrupt or not an image)")
     return img
@@ -166,8 +170,13 @@ def detect_images(
     board: BoardSpec,
     progress: Callable[[int, int], None] | None = None,
 ) -> DetectionSet:
-    """Detect the board in every image. Every image of one camera must have the same size."""
+    """Detect the board in every image. Every image of one camera must have the same size.
+    What was found in an image before (same bytes, same board) comes from calibration.detection_cache."""
+    from calibration import detection_cache
+
     detector = make_detector(board)
+    cached = detection_cache.enabled()
+    board_hash = detection_cache.board_key(board) if cached else ""
     sizes: dict[str, tuple[int, int]] = {}
     first_file: dict[str, Path] = {}
     corners: dict[str, dict[str, Corners]] = {}
@@ -180,7 +189,11 @@ def detect_images(
         sources[cam] = {}
         seen[cam] = 0
         for view, path in sorted(per_view.items()):
-            img = read_gray(path)
+            try:
+                data = path.read_bytes()
+            except OSError as exc:
+                raise CalibrationError(f"{path}: cannot read this image ({exc.strerror or exc})") from None
+            img = read_gray(path, data)
             size = (img.shape[1], img.shape[0])
             if cam not in sizes:
                 sizes[cam] = size
@@ -191,7 +204,12 @@ def detect_images(
                     f"{sizes[cam][0]}x{sizes[cam][1]}; all images of one camera must have the same size"
                 )
             seen[cam] += 1
-            found = detector(img)
+            key = detection_cache.entry_key(data, board_hash) if cached else ""
+            hit, found = detection_cache.load(key) if cached else (False, None)
+            if not hit:
+                found = detector(img)
+                if cached:
+                    detection_cache.store(key, found)
             if found is not None:
                 corners[cam][view] = found
                 sources[cam][view] = str(path)

@@ -16,7 +16,20 @@ SHARED = REPO.parent / "shared"
 
 def pytest_configure(config):
     """Simulated cameras cache their pre-rendered loops; a test run keeps its own cache (shared by
-    its tests and the commands they start) and leaves the user's ~/.cache alone."""
+    its tests and the commands they start) and leaves the user's ~/.cache alone.
+
+    Under pytest-xdist each worker gets its share of the cores for torch's and OpenMP's threads
+    (it and the commands it starts): two workers each spinning two threads on two cores spend
+    much of the machine waiting for each other."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if workers > 0:
+        share = str(max(1, (os.cpu_count() or 1) // workers))
+        os.environ["OMP_NUM_THREADS"] = share
+        import cv2
+        import torch
+
+        torch.set_num_threads(int(share))
+        cv2.setNumThreads(int(share))
     if "RIG_CACHE_DIR" not in os.environ:
         os.environ["RIG_CACHE_DIR"] = config._rig_cache = tempfile.mkdtemp(prefix="rig-test-cache-")
 

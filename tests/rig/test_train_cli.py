@@ -40,12 +40,23 @@ def metrics(out: Path) -> list[dict]:
     return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
 
 
-def test_train_runs_both_stages_and_resume_continues_the_same_loss_curve(takes, light, tmp_path):
-    whole, parts = tmp_path / "whole", tmp_path / "parts"
-    args = [*SMALL, "--config", light, "--batch", "1", "--stage1-steps", "3", "--stage2-steps", "1"]
-    r = rig("train", *takes, "-o", whole, *args, "--json")
+# The run of 3 + 1 steps the resume test continues in parts; the other tests start from its model.
+WHOLE_STEPS = ["--batch", "1", "--stage1-steps", "3", "--stage2-steps", "1"]
+
+
+@pytest.fixture(scope="module")
+def whole(takes, light, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("whole") / "run"
+    r = rig("train", *takes, "-o", out, *SMALL, "--config", light, *WHOLE_STEPS, "--json")
     assert r.returncode == 0, r.stderr
-    check_outputs(whole, json.loads(r.stdout))
+    return out, json.loads(r.stdout)
+
+
+def test_train_runs_both_stages_and_resume_continues_the_same_loss_curve(takes, light, whole, tmp_path):
+    whole, summary = whole
+    parts = tmp_path / "parts"
+    args = [*SMALL, "--config", light, *WHOLE_STEPS]
+    check_outputs(whole, summary)
     r = rig("train", *takes, "-o", parts, *args, "--stop-after", "2")
     assert r.returncode == 0, r.stderr
     assert [m["step"] for m in metrics(parts) if not m.get("eval")] == [1, 2]
@@ -141,10 +152,8 @@ def test_a_sequence_without_calibration_is_refused(takes, tmp_path):
     assert "calibrat" in r.stderr
 
 
-def test_a_checkpoint_of_another_configuration_is_refused_and_kept(takes, light, tmp_path):
-    out = tmp_path / "run"
-    r = rig("train", *takes, "-o", out, *SMALL, "--config", light, "--batch", "1", "--stage1-steps", "1", "--stage2-steps", "0")
-    assert r.returncode == 0, r.stderr
+def test_a_checkpoint_of_another_configuration_is_refused_and_kept(takes, light, whole, tmp_path):
+    out = whole[0]
     before = (out / "checkpoint.pt").read_bytes()
     r = rig("train", *takes, "-o", out, "--size", "preview", "--resume")
     one_line_exit_2(r)

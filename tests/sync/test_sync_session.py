@@ -154,10 +154,11 @@ def test_a_rig_without_a_trigger_board_groups_by_the_left_camera():
     # each camera within half a period (20 ms) of the reference, so two of them within a period
     assert stats["skew_us"]["max"] <= 40_000
     # the cameras' relative phase depends on when each started; clear of the half-period boundary
-    # every set has both
+    # every set has both, but for the odd frame a loaded host stamped late (measured: 3 of 65 with
+    # another test process rendering beside it)
     phase = np.median([s["right"].host_ts_ns - s["left"].host_ts_ns for s in steady if s["right"] is not None])
     if abs(phase) < 0.35 * 40e6:
-        assert sum(s["right"] is not None for s in steady) >= len(steady) - 1
+        assert sum(s["right"] is not None for s in steady) >= 0.9 * len(steady)
     soft = [s for s in steady if s["soft"] is not None]
     assert len(soft) >= 0.8 * len(steady)  # software triggers at the left camera's rate
     for s in soft:
