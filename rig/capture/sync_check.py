@@ -80,7 +80,15 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
         pulses_wanted = max(1, int(round(seconds * rate)))
         session.start(pulses_wanted if session.board is not None else 0)
         started = time.monotonic()
-        for fs in session.framesets():
+
+        def over() -> bool:
+            # Asked also while no set arrives: the board's DONE can come after the last set.
+            elapsed = time.monotonic() - started
+            if session.board is None:
+                return elapsed >= seconds
+            return session.train_done.is_set() or elapsed >= seconds + 10.0
+
+        for fs in session.framesets(until=over):
             sets += 1
             bad = False
             for name, frame in fs.frames.items():
@@ -98,11 +106,6 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
             mismatched += bad
             if progress is not None:
                 progress(f"{time.monotonic() - started:6.1f} s  {sets} sets  {fs.index + 1} pulses")
-            elapsed = time.monotonic() - started
-            if session.board is None and elapsed >= seconds:
-                session.stop()
-            elif session.board is not None and (session.train_done.is_set() or elapsed >= seconds + 10.0):
-                session.stop()
         stats = session.grouper.stats()
         link = session.board.report() if session.board is not None else None
         report = {

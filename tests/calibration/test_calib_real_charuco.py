@@ -12,6 +12,8 @@ import pytest
 from calibration.camera import RigCalibration
 from tests.calibration.cli_helpers import run_json
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def sleap(shared_data):

@@ -15,6 +15,8 @@ from mast3r_support import official_layout, random_state, write_checkpoint
 import inference.onnx_weights as onnx_weights
 from rig.cli import main as rig_main
 
+pytestmark = pytest.mark.slow
+
 ENC, DEC = 2, 2
 
 

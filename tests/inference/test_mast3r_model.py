@@ -18,6 +18,8 @@ from inference.model.mast3r_weights import load_into
 from inference.model.backbone import PointMaps
 from inference.model.stage1 import AffineTransform
 
+pytestmark = pytest.mark.slow
+
 
 def test_rope_scores_depend_on_relative_positions_only():
     # The rotary embedding's point: q.k after rotation depends on the positions' difference.

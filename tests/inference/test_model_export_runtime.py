@@ -19,6 +19,8 @@ from inference.runtime.preprocess import pinhole
 from inference.runtime.synthetic import example_inputs, rig_camera
 from rig.cli import main
 
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[2]
 
 

@@ -16,7 +16,7 @@ from rig.cameras.sim import sim_rig_config
 from rig.config import dump_config
 from tests.rig.cli_helpers import REPO, assert_one_line_error, run_rig
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

@@ -27,6 +27,8 @@ from rig.storage.layout import INDEX
 from rig.storage.media import MANIFEST
 from simulator.gopro.scene import scene_emulators
 
+pytestmark = pytest.mark.slow
+
 GOPRO_FPS = (24.0, 30.0)
 CUT_AFTER = 200_000  # bytes of the first GoPro's download before the emulator drops the connection
 

@@ -12,6 +12,8 @@ import torch
 
 from simulator.takes import write_take
 
+pytestmark = pytest.mark.slow
+
 RIG = [sys.executable, "-m", "rig"]
 SMALL = ["--size", "test", "--batch", "2", "--eval-every", "3", "--threads", "1"]
 # One supervision view per frame set and one held-out set per evaluation: the smallest real run.
