@@ -616,10 +616,13 @@ def _grab_set(cameras, timeout: float) -> dict:
         cam.software_trigger()
     images = {}
     for cam in cameras:
-        if cam.settings.trigger == "software":
-            images[cam.name] = cam.get_frame(timeout).image
-        else:
+        try:
             frame = cam.get_frame(timeout)
+        except CameraTimeout as exc:
+            raise CameraTimeout(f"{exc} (a slow camera, or a simulated one on a busy machine: give it longer with --timeout SECONDS)") from None
+        if cam.settings.trigger == "software":
+            images[cam.name] = frame.image
+        else:
             while True:  # drop what queued up while we were detecting: the newest frame is the present
                 try:
                     frame = cam.get_frame(0.0)

@@ -170,3 +170,13 @@ def test_a_simulated_capture_is_the_same_every_time(tmp_path, monkeypatch, capsy
     for cam in ("left", "right"):
         for view in runs[0]["kept"]:
             assert (tmp_path / "v0" / cam / f"{view['view']}.png").read_bytes() == (tmp_path / "v1" / cam / f"{view['view']}.png").read_bytes()
+
+
+def test_a_camera_slower_than_the_timeout_says_to_raise_it(tmp_path, monkeypatch, capsys):
+    """A simulated 1280x720 frame takes longer than 1 ms to render: the capture stops with one line
+    that names the camera and the option that gives it longer, and exit 1 (a device error)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "board.toml").write_text(A0_BOARD)
+    assert _cli(["config", "init", "--sim", "rig.toml"], capsys)[0] == 0
+    rc, out, err = _cli(["calibrate", "capture", "-c", "rig.toml", "--board", "board.toml", "-o", "views", "--timeout", "0.001"], capsys)
+    assert rc != 0 and err.count("\n") == 1 and "no frame within 0.001 s" in err and "--timeout SECONDS" in err, (rc, err)
