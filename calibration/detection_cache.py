@@ -18,13 +18,13 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
 
 from calibration.detect import Corners
-from common.files import atomic_path
+from common.files import atomic_path, user_cache_dir
 
 FORMAT_VERSION = 1
 _ROOT = Path(__file__).resolve().parent.parent
@@ -33,11 +33,7 @@ NOT_FOUND = "not found"
 
 
 def cache_dir() -> Path:
-    base = os.environ.get("RIG_CACHE_DIR")
-    if base:
-        return Path(base) / "detections"
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "rig" / "detections"
+    return user_cache_dir("detections")
 
 
 def enabled() -> bool:
@@ -101,3 +97,16 @@ def store(key: str, corners: Optional[Corners]) -> None:
                              points=np.asarray(corners.points, np.float64))
     except OSError:
         pass  # a cache that cannot be written (read-only home, full disk) only costs time
+
+
+def detect_cached(detect: Callable[[], Optional[Corners]], image_bytes: bytes, board_hash: str) -> Optional[Corners]:
+    """`detect()`'s result for the image whose file holds `image_bytes`, from the cache when it was
+    found before (for the board whose `board_key` is `board_hash`); a new result is kept."""
+    if not enabled():
+        return detect()
+    key = entry_key(image_bytes, board_hash)
+    hit, found = load(key)
+    if not hit:
+        found = detect()
+        store(key, found)
+    return found

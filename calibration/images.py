@@ -175,8 +175,7 @@ def detect_images(
     from calibration import detection_cache
 
     detector = make_detector(board)
-    cached = detection_cache.enabled()
-    board_hash = detection_cache.board_key(board) if cached else ""
+    board_hash = detection_cache.board_key(board)
     sizes: dict[str, tuple[int, int]] = {}
     first_file: dict[str, Path] = {}
     corners: dict[str, dict[str, Corners]] = {}
@@ -204,12 +203,7 @@ def detect_images(
                     f"{sizes[cam][0]}x{sizes[cam][1]}; all images of one camera must have the same size"
                 )
             seen[cam] += 1
-            key = detection_cache.entry_key(data, board_hash) if cached else ""
-            hit, found = detection_cache.load(key) if cached else (False, None)
-            if not hit:
-                found = detector(img)
-                if cached:
-                    detection_cache.store(key, found)
+            found = detection_cache.detect_cached(lambda: detector(img), data, board_hash)
             if found is not None:
                 corners[cam][view] = found
                 sources[cam][view] = str(path)

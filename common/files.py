@@ -70,3 +70,13 @@ def fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def user_cache_dir(name: str) -> Path:
+    """The folder of one of the product's on-disk caches: $RIG_CACHE_DIR/NAME, else
+    $XDG_CACHE_HOME/rig/NAME, else ~/.cache/rig/NAME."""
+    base = os.environ.get("RIG_CACHE_DIR")
+    if base:
+        return Path(base) / name
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "rig" / name

@@ -28,7 +28,7 @@ from typing import Any, Optional
 import cv2
 import numpy as np
 
-from common.files import atomic_path
+from common.files import atomic_path, user_cache_dir
 
 FORMAT_VERSION = 1  # bump when the file layout or what a loop holds changes
 DEFAULT_MAX_MB = 2048
@@ -41,11 +41,7 @@ _SOURCES = ("simulator", "calibration/camera.py", "calibration/boards.py")
 
 
 def cache_dir() -> Path:
-    base = os.environ.get("RIG_CACHE_DIR")
-    if base:
-        return Path(base) / "sim-loops"
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "rig" / "sim-loops"
+    return user_cache_dir("sim-loops")
 
 
 def max_bytes() -> int:
