@@ -142,11 +142,33 @@ class Stage1Config:
             raise InferenceError(f"stage1: scale_reference must be baseline or one, got '{self.scale_reference}'")
 
 
+ZBUFFERS = ("occlusion", "reference")
+
+
 @dataclass
 class DepthInitConfig:
-    radius: int = 1  # splat window half-size in fine target pixels: (2r+1)^2 pixels per point
-    front_tolerance: float = 0.02  # softness of the z-buffer, relative depth (see depth_init)
+    # Splat window half-size in fine target pixels: (2r+1)^2 pixels per point. Stage 1's points are
+    # about 2 target pixels apart (the coarse size is half the fine one): radius 2 covers the gaps.
+    radius: int = 2
+    # How the splats at a target pixel blend (see depth_init): "occlusion", coverage nearer than the
+    # margin hides a splat; "reference", the soft z-buffer of models saved before "occlusion" existed.
+    zbuffer: str = "occlusion"
+    occlusion_gain: float = 5.0  # a splat behind coverage c keeps exp(-gain c) of its weight
+    occlusion_margin: float = 0.3  # log depth (35 %): only coverage nearer than this occludes
+    depth_bin: float = 0.15  # log-depth bin of the coverage histogram (the margin spans >= 2 bins)
+    depth_span: float = 3.0  # the bins cover the view's mean log depth +- this (20x nearer or farther)
+    front_tolerance: float = 0.02  # "reference" only: softness of its z-buffer, relative depth
     fill_levels: int = 6  # push-pull levels that fill pixels no point reached
+
+    def __post_init__(self) -> None:
+        if self.zbuffer not in ZBUFFERS:
+            raise InferenceError(f"depth_init: zbuffer must be one of {', '.join(ZBUFFERS)}, got '{self.zbuffer}'")
+        if not (isinstance(self.radius, int) and 0 <= self.radius <= 4):
+            raise InferenceError(f"depth_init: radius must be an integer from 0 to 4, got {self.radius!r}")
+        if not (self.depth_bin > 0 and self.depth_span >= 2 * self.depth_bin and self.occlusion_margin >= 2 * self.depth_bin):
+            raise InferenceError("depth_init: depth_bin must be positive, and depth_span and occlusion_margin at least two bins")
+        if self.occlusion_gain < 0:
+            raise InferenceError(f"depth_init: occlusion_gain must be >= 0, got {self.occlusion_gain}")
 
 
 @dataclass
@@ -159,6 +181,14 @@ class Stage2Config:
     head_dim: int = 32  # channels of the Gaussian plane heads
     colour_alpha: float = 0.8  # P_c = alpha C + (1 - alpha) dC (the paper's alpha = 0.8)
     gaussian_sigma: float = 0.6  # initial in-plane Gaussian size, in fine pixels
+    # Pixels over which a source's visibility fades at its image border: colour init blends the
+    # sources by it (a point one source cannot see takes the other's colour), and a narrow ramp
+    # makes the blend swing with float rounding of the projection.
+    visibility_ramp: float = 8.0
+
+    def __post_init__(self) -> None:
+        if not self.visibility_ramp > 0:
+            raise InferenceError(f"stage2: visibility_ramp must be > 0, got {self.visibility_ramp}")
 
 
 @dataclass
@@ -191,16 +221,23 @@ class ModelConfig:
         return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "ModelConfig":
+    def from_dict(cls, d: dict[str, Any], saved: bool = False) -> "ModelConfig":
+        """`saved`: `d` is a whole configuration a checkpoint or an export recorded; a key it lacks was
+        added later and takes the value that reproduces what that model computed (SAVED_BEFORE)."""
+        if saved and isinstance(d, dict):
+            d = {k: dict(v) if isinstance(v, dict) else v for k, v in d.items()}
+            for (section, key), value in SAVED_BEFORE.items():
+                if isinstance(d.get(section), dict):
+                    d[section].setdefault(key, value)
         return _build(cls, d, "model")
 
     @classmethod
-    def from_json(cls, text: str) -> "ModelConfig":
+    def from_json(cls, text: str, saved: bool = False) -> "ModelConfig":
         try:
             d = json.loads(text)
         except json.JSONDecodeError as exc:
             raise InferenceError(f"model configuration is not valid JSON ({exc.msg})") from None
-        return cls.from_dict(d)
+        return cls.from_dict(d, saved=saved)
 
     @classmethod
     def for_backbone(cls, kind: str, sizes: Sizes | None = None, **overrides: Any) -> "ModelConfig":
@@ -215,6 +252,36 @@ class ModelConfig:
             section, _, name = key.partition(".")
             setattr(getattr(cfg, section), name, value)
         return cfg
+
+
+# Keys added after models were first saved, with the value that makes a model saved before them
+# compute what it computed then (its weights were trained with it).
+SAVED_BEFORE: dict[tuple[str, str], Any] = {
+    ("depth_init", "zbuffer"): "reference",
+    ("stage2", "visibility_ramp"): 1.0,
+}
+
+
+# Settings that no weight depends on: how depth init splats and blends, how the Gaussian plane is
+# rendered, how colour init fades a source at its border. A run may start from weights trained
+# with other values of these (fine-tuning to them).
+WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp"}}
+
+
+def weight_differences(a: "ModelConfig", b: "ModelConfig") -> list[str]:
+    """The keys ("section.key") in which two configurations differ where weights depend on them."""
+    out = []
+    da, db = a.to_dict(), b.to_dict()
+    for section in sorted(set(da) | set(db)):
+        va, vb = da.get(section), db.get(section)
+        free = WEIGHT_FREE.get(section, ())
+        if free == "*":
+            continue
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += [f"{section}.{k}" for k in sorted(set(va) | set(vb)) if k not in free and va.get(k) != vb.get(k)]
+        elif va != vb:
+            out.append(section)
+    return out
 
 
 def _build(cls, d: Any, where: str):

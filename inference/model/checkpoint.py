@@ -66,7 +66,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
 def load_checkpoint(path: str | os.PathLike) -> SplatSAP:
     path = Path(path)
     data = read_checkpoint(path)
-    cfg = ModelConfig.from_dict(data["config"])
+    cfg = ModelConfig.from_dict(data["config"], saved=True)
     model = build_model(cfg, seed=None)
     missing, unexpected = model.load_state_dict(data["state_dict"], strict=False)
     if missing or unexpected:

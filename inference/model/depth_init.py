@@ -1,15 +1,27 @@
 """Depth initialisation: forward-splat the transformed point maps of both views into the target view.
 
-Every point is splatted with a fixed radius onto the (2r+1)^2 target pixels around its projection,
-with a smooth kernel k(d) = (1 - d^2/rho^2)^2 (rho = r + 1/2, so its support always lies inside the
-window) times the point's opacity. A soft z-buffer blends the contributions at each pixel: the
-front surface wins, depths a few relative tolerances behind it fade out, points of one surface blend
-by their weights (see splat_depth). Unlike a hard z-buffer it is continuous in the inputs (a faint
-splat fades out instead of switching a pixel to another surface), so float rounding cannot flip a
-pixel and ONNX Runtime agrees with torch. Pixels no point reached are filled by push-pull
-interpolation.
+Every point is splatted onto the (2r+1)^2 target pixels around its projection with a smooth kernel
+k(d) = (1 - d^2/rho^2)^2 (rho = r + 1/2, so its support always lies inside the window) times the
+point's opacity: its coverage of the pixel. The contributions at a pixel then blend by weight after
+a soft visibility test (`zbuffer`):
 
-Everything is scatter/gather on flat tensors: exportable to ONNX (ScatterElements, GatherElements).
+- "occlusion" (the default): a contribution keeps exp(-gain C) of its weight, where C is the
+  coverage at that pixel nearer than it by more than a margin (35 % in depth). C is read from a
+  histogram of the pixel's coverage over log-depth bins (each contribution split linearly between
+  its two nearest bins, a cumulative sum over the bins, read back between bins), so it is
+  continuous in every point, and it is linear in the coverages: a faint splat (the rim of a kernel,
+  whose weight turns fast with its position) can only occlude as much as it covers. Points of one
+  surface, within the margin, blend by their weights. Radius 2 covers the gaps between stage 1's
+  points (about 2 target pixels apart), so a nearer surface occludes with full coverage.
+- "reference": the z-buffer of models saved before "occlusion": each contribution is preferred by
+  exp(-clip(log(z / z_ref) / tolerance, +-8)) against a front-leaning mean depth z_ref of the pixel.
+  A rim splat 8 nats of preference ahead wins against a well-covered surface, so where the two
+  compete the depth swings with the rim's weight, and z_ref feeds back through the clip with a gain
+  of 1 / tolerance: trained stage-1 depth with sharp edges made ONNX Runtime's float rounding
+  (1e-5 m) move its depth by centimetres (docs/model.md).
+
+Pixels no point reached are filled by push-pull interpolation. Everything is scatter/gather on flat
+tensors and a cumulative sum: exportable to ONNX (ScatterElements, GatherElements, CumSum).
 """
 from __future__ import annotations
 
@@ -22,7 +34,7 @@ import torch.nn.functional as F
 from inference.config import DepthInitConfig
 from inference.model.geometry import project, transform_points
 
-FRONT_RANGE = 8.0  # the soft z-buffer prefers a nearer surface by at most e^8 (in units of weight)
+FRONT_RANGE = 8.0  # "reference": a nearer surface is preferred by at most e^8 (in units of weight)
 
 
 @dataclass
@@ -38,12 +50,12 @@ def splat_depth(
     to_target: torch.Tensor,
     target_K: torch.Tensor,
     size: tuple[int, int],
-    radius: int,
-    front_tolerance: float,
+    cfg: DepthInitConfig,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Splat points (B, 3, N) with opacities (B, 1, N) into a (W, H) target. Returns raw depth and coverage."""
     b = points.shape[0]
     w, h = size
+    radius = cfg.radius
     uv, z = project(transform_points(to_target, points), target_K)  # (B, 2, N), (B, 1, N)
     u, v, z = uv[:, 0], uv[:, 1], z[:, 0]
     alpha = opacity[:, 0]
@@ -69,24 +81,52 @@ def splat_depth(
     index = torch.cat(idx_list, dim=1)
     weight = torch.cat(w_list, dim=1)
     depth = torch.cat(z_list, dim=1)
-    # Soft z-buffer. Each pixel's reference depth is a weighted power mean leaning to the front,
-    # z_ref = (sum w z^-4 / sum w)^(-1/4); each contribution blends with w * exp(-clip(log(z/z_ref)
-    # / tolerance, +-range)): nearer surfaces win, surfaces a few tolerances behind fade out, and
-    # points of one surface blend by weight. Bounding the preference keeps a faint splat (the rim
-    # of a kernel) from overriding a well-covered surface however much nearer it is, and keeps the
-    # result smooth in the weights, so float rounding cannot swing a pixel between surfaces.
-    zc = depth.clamp(min=1e-3)
     total = torch.zeros(b, h * w, dtype=depth.dtype, device=depth.device).scatter_add(1, index, weight)
+    if cfg.zbuffer == "occlusion":
+        blend = _occlusion_blend(index, weight, depth, h * w, cfg)
+    else:
+        blend = _reference_blend(index, weight, depth, total, cfg.front_tolerance)
+    num = torch.zeros_like(total).scatter_add(1, index, blend * depth)
+    den = torch.zeros_like(total).scatter_add(1, index, blend)
+    raw = num / den.clamp(min=1e-12)
+    return raw.reshape(b, 1, h, w), total.reshape(b, 1, h, w)
+
+
+def _occlusion_blend(index: torch.Tensor, weight: torch.Tensor, depth: torch.Tensor, pixels: int, cfg: DepthInitConfig) -> torch.Tensor:
+    """weight * exp(-gain * coverage nearer than each contribution by more than the margin)."""
+    b = weight.shape[0]
+    bins = int(round(2.0 * cfg.depth_span / cfg.depth_bin)) + 1
+    log_z = torch.log(depth.clamp(min=1e-3))
+    # Bins centred on the view's weighted mean log depth (one number per view: a scene at any scale).
+    centre = (weight * log_z).sum(1, keepdim=True) / weight.sum(1, keepdim=True).clamp(min=1e-12)
+    t = ((log_z - centre + cfg.depth_span) / cfg.depth_bin).clamp(0.0, bins - 1.001)
+    lower = torch.floor(t)
+    frac = t - lower
+    # Per pixel, bins + 1 slots: an empty slot 0 (nothing nearer than the nearest bin), then the bins.
+    slots = bins + 1
+    slot = index * slots + lower.to(torch.int64) + 1
+    hist = torch.zeros(b, pixels * slots, dtype=weight.dtype, device=weight.device)
+    hist = hist.scatter_add(1, slot, weight * (1.0 - frac)).scatter_add(1, slot + 1, weight * frac)
+    # Coverage at or nearer than each bin, read between slots at the contribution's depth minus the
+    # margin (linear between slots, 0 at slot 0: continuous wherever the contribution lies).
+    nearer = torch.cumsum(hist.reshape(b, pixels, slots), dim=2).reshape(b, pixels * slots)
+    r = (t + 1.0 - cfg.occlusion_margin / cfg.depth_bin).clamp(min=0.0)
+    r0 = torch.floor(r)
+    rf = r - r0
+    base = index * slots + r0.to(torch.int64)
+    front = torch.gather(nearer, 1, base) * (1.0 - rf) + torch.gather(nearer, 1, base + 1) * rf
+    return weight * torch.exp(-cfg.occlusion_gain * front)
+
+
+def _reference_blend(index: torch.Tensor, weight: torch.Tensor, depth: torch.Tensor, total: torch.Tensor, tolerance: float) -> torch.Tensor:
+    """The "reference" z-buffer: z_ref = (sum w z^-4 / sum w)^(-1/4) leaning to the front; each
+    contribution blends with w * exp(-clip(log(z/z_ref) / tolerance, +-FRONT_RANGE))."""
+    zc = depth.clamp(min=1e-3)
     inv2 = 1.0 / (zc * zc)
     inv4 = torch.zeros_like(total).scatter_add(1, index, weight * (inv2 * inv2))
     log_ref = -0.25 * torch.log(inv4.clamp(min=1e-30) / total.clamp(min=1e-30))
-    pref = ((torch.log(zc) - torch.gather(log_ref, 1, index)) / front_tolerance).clamp(-FRONT_RANGE, FRONT_RANGE)
-    blend = weight * torch.exp(-pref)
-    num = torch.zeros_like(total).scatter_add(1, index, blend * depth)
-    den = torch.zeros_like(total).scatter_add(1, index, blend)
-    cov = total
-    raw = num / den.clamp(min=1e-12)
-    return raw.reshape(b, 1, h, w), cov.reshape(b, 1, h, w)
+    pref = ((torch.log(zc) - torch.gather(log_ref, 1, index)) / tolerance).clamp(-FRONT_RANGE, FRONT_RANGE)
+    return weight * torch.exp(-pref)
 
 
 def push_pull_fill(depth: torch.Tensor, coverage: torch.Tensor, levels: int) -> torch.Tensor:
@@ -118,6 +158,6 @@ class DepthInit(nn.Module):
         b = points_left.shape[0]
         pts = torch.cat([points_left.reshape(b, 3, -1), points_right.reshape(b, 3, -1)], dim=2)
         op = torch.cat([opacity_left.reshape(b, 1, -1), opacity_right.reshape(b, 1, -1)], dim=2)
-        raw, cov = splat_depth(pts, op, left_to_target, target_K, self.size, self.cfg.radius, self.cfg.front_tolerance)
+        raw, cov = splat_depth(pts, op, left_to_target, target_K, self.size, self.cfg)
         filled = push_pull_fill(raw, cov, self.cfg.fill_levels)
         return SplatDepth(filled, cov, raw)

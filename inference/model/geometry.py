@@ -135,14 +135,18 @@ def normalise_pixels(uv: torch.Tensor, width: int, height: int) -> torch.Tensor:
     return torch.stack([gx, gy], dim=-1)
 
 
-def in_image(uv: torch.Tensor, z: torch.Tensor, width: int, height: int) -> torch.Tensor:
+def in_image(uv: torch.Tensor, z: torch.Tensor, width: int, height: int, ramp: float = 1.0) -> torch.Tensor:
     """How much a projection lies inside the image, in front of the camera: 1 inside, 0 outside,
-    a linear ramp over the border pixel (B, 1, ...). Continuous, so that float rounding of a
-    projection near the border cannot switch a pixel between sources (torch/ONNX Runtime parity)."""
+    a linear ramp over `ramp` pixels inward from the border pixel's outer edge (B, 1, ...).
+    Continuous, so that float rounding of a projection near the border cannot switch a pixel
+    between sources (torch/ONNX Runtime parity); a wider ramp is gentler still."""
     u, v = uv[:, 0:1], uv[:, 1:2]
-    inside_u = torch.minimum(u + 0.5, width - 0.5 - u).clamp(0.0, 1.0)
-    inside_v = torch.minimum(v + 0.5, height - 0.5 - v).clamp(0.0, 1.0)
-    return inside_u * inside_v * (z > 1e-6).to(uv.dtype)
+    inside_u = torch.minimum(u + 0.5, width - 0.5 - u)
+    inside_v = torch.minimum(v + 0.5, height - 0.5 - v)
+    if ramp != 1.0:
+        inside_u = inside_u / ramp
+        inside_v = inside_v / ramp
+    return inside_u.clamp(0.0, 1.0) * inside_v.clamp(0.0, 1.0) * (z > 1e-6).to(uv.dtype)
 
 
 def sample(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:

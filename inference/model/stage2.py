@@ -169,8 +169,9 @@ class ColourInit(nn.Module):
         uv_r, z_r = project(transform_points(target_to_right, points), right_K)
         grid_l = normalise_pixels(uv_l, fw, fh)
         grid_r = normalise_pixels(uv_r, fw, fh)
-        vis_l = in_image(uv_l, z_l, fw, fh)
-        vis_r = in_image(uv_r, z_r, fw, fh)
+        ramp = self.cfg.visibility_ramp
+        vis_l = in_image(uv_l, z_l, fw, fh, ramp)
+        vis_r = in_image(uv_r, z_r, fw, fh, ramp)
         col_l = F.grid_sample(left, grid_l, mode="bilinear", padding_mode="border", align_corners=False)
         col_r = F.grid_sample(right, grid_r, mode="bilinear", padding_mode="border", align_corners=False)
         # The 1/4-size feature maps share the normalised grid (pixel-centre convention).

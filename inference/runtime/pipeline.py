@@ -104,7 +104,7 @@ def read_model_info(session: ort.InferenceSession, path: Path) -> ModelInfo:
     meta = session.get_modelmeta().custom_metadata_map
     if meta.get("splat_sap.format") != "1" or "splat_sap.config" not in meta:
         raise InferenceError(f"{path}: not a Splat-SAP model (no splat_sap metadata; export it with `rig model export`)")
-    cfg = ModelConfig.from_json(meta["splat_sap.config"])
+    cfg = ModelConfig.from_json(meta["splat_sap.config"], saved=True)
     return ModelInfo(
         cfg,
         tuple(meta["splat_sap.inputs"].split(",")),

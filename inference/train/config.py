@@ -139,11 +139,12 @@ class TrainConfig:
         return json.dumps(self.to_dict(), sort_keys=True, indent=1)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "TrainConfig":
+    def from_dict(cls, d: dict[str, Any], saved: bool = False) -> "TrainConfig":
+        """`saved`: a whole configuration a run recorded (see ModelConfig.from_dict)."""
         if not isinstance(d, dict):
             raise InferenceError("training config: expected an object")
         d = dict(d)
-        model = ModelConfig.from_dict(d.pop("model")) if "model" in d else None
+        model = ModelConfig.from_dict(d.pop("model"), saved=saved) if "model" in d else None
         cfg = _build(cls, d, "train")
         if model is not None:
             cfg.model = model

@@ -33,7 +33,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from common.files import atomic_path, atomic_write_json
 from inference.errors import InferenceError, OutputError
-from inference.config import ModelConfig
+from inference.config import ModelConfig, weight_differences
 from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
 from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
@@ -112,7 +112,7 @@ class Trainer:
         data = read_checkpoint(path)
         if "train" not in data:
             raise InferenceError(f"{path}: not a training checkpoint (a finished model; start a new run from scratch)")
-        saved = TrainConfig.from_dict(data["train"]["config"])
+        saved = TrainConfig.from_dict(data["train"]["config"], saved=True)
         if saved.model.to_dict() != self.cfg.model.to_dict():
             raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (train it with its own config, or start a new folder)")
         self.model.load_state_dict(data["state_dict"])
@@ -123,11 +123,12 @@ class Trainer:
         """Start this run's schedule from the weights of an earlier run (fine-tuning, a longer schedule)."""
         data = read_checkpoint(path)
         try:
-            # Read through ModelConfig: a checkpoint written before a key was added has its default.
-            saved = ModelConfig.from_dict(data.get("config")).to_dict()
+            # A checkpoint written before a key was added computes what its value in SAVED_BEFORE does.
+            saved = ModelConfig.from_dict(data.get("config"), saved=True)
         except (InferenceError, TypeError, ValueError, AttributeError):
             saved = None
-        if saved != self.cfg.model.to_dict():
+        # Settings no weight depends on (config.WEIGHT_FREE) may differ: the run fine-tunes to its own.
+        if saved is None or weight_differences(saved, self.cfg.model):
             raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (--size, --backbone, --config)")
         self.model.load_state_dict(data["state_dict"])
 

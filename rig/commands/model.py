@@ -415,7 +415,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         from inference.runtime.metadata import read_file_metadata
 
         meta = read_file_metadata(model_path)
-        model = model_from_record(ModelConfig.from_json(meta["splat_sap.config"]), meta["splat_sap.weights"], weights=args.weights)
+        model = model_from_record(ModelConfig.from_json(meta["splat_sap.config"], saved=True), meta["splat_sap.weights"], weights=args.weights)
     else:
         if args.weights is not None:
             raise ConfigError("--weights: a checkpoint holds its backbone's weights already; give one of them")

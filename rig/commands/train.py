@@ -63,7 +63,7 @@ def build_config(args: argparse.Namespace):
             raise ConfigError(f"{args.config}: not valid JSON ({exc})") from None
     elif args.resume and (args.out / "train.json").is_file():
         try:
-            cfg = TrainConfig.from_dict(json.loads((args.out / "train.json").read_text())["config"])
+            cfg = TrainConfig.from_dict(json.loads((args.out / "train.json").read_text())["config"], saved=True)
         except (OSError, ValueError, KeyError, TypeError):
             raise ConfigError(f"{args.out / 'train.json'}: not a readable training record; pass --config") from None
     else:

@@ -58,3 +58,20 @@ def test_checkpoint_round_trip_is_atomic(tmp_path):
         save_checkpoint(model, tmp_path / "runs" / "dir.pt")
     assert failed.value.exit_code == 1
     assert sorted(p.name for p in path.parent.iterdir()) == ["dir.pt", "step1.pt"]
+
+
+def test_a_checkpoint_saved_before_a_renderer_setting_existed_computes_what_it_did(tmp_path):
+    """Configurations record every key; one a checkpoint lacks was added later, and the model gets
+    the value it was trained with (config.SAVED_BEFORE), not the new default."""
+    cfg = ModelConfig.for_backbone("tiny", Sizes((64, 32), (128, 64), (160, 80)))
+    model = build_model(cfg, seed=3)
+    save_checkpoint(model, tmp_path / "new.pt")
+    assert load_checkpoint(tmp_path / "new.pt").cfg.depth_init.zbuffer == "occlusion"
+    data = torch.load(tmp_path / "new.pt", weights_only=True)
+    del data["config"]["depth_init"]["zbuffer"]
+    del data["config"]["stage2"]["visibility_ramp"]
+    torch.save(data, tmp_path / "old.pt")
+    old = load_checkpoint(tmp_path / "old.pt")
+    assert (old.cfg.depth_init.zbuffer, old.cfg.stage2.visibility_ramp) == ("reference", 1.0)
+    # a configuration a user writes gets today's defaults
+    assert ModelConfig.from_dict({"depth_init": {"radius": 1}}).depth_init.zbuffer == "occlusion"

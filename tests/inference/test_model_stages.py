@@ -189,7 +189,8 @@ def test_colour_comes_from_the_source_that_sees_the_point():
     out = colour(L, Rimg, t(left.K), t(right.K), tl, tr, t(target.K), fixed)
     assert out.visible_right.max() == 0
     seen = (out.visible_left == 1).expand(1, 3, 48, 64)
-    assert seen.float().mean() > 0.85  # measured 0.90
+    # fully visible from 8 px inside the border (Stage2Config.visibility_ramp): measured 0.62 (0.90 with a 1 px ramp)
+    assert seen.float().mean() > 0.55
     assert torch.allclose(out.colour[seen], out.colour_left[seen], atol=1e-6)
     plane = GaussianPlane(cfg, (64, 48))(out, d, t(target.K))
     # Untrained heads: P_c = C, unit quaternions, Gaussians about 0.6 px wide.
