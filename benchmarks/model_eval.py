@@ -75,7 +75,8 @@ def main() -> int:
         print(f"{name:28s} {f(o['psnr'], '%7.2f'):>7s} {f(o['ssim'], '%6.3f'):>6s} {f(o['psnr_mask'], '%10.2f'):>10s} {f(o['ssim_mask'], '%10.3f'):>10s}")
     for name, r in (("trained", t), ("untrained", u)):
         j = r["scale_jitter"]
-        print(f"{name}: stage-1 depth AbsRel {100 * r['depth_absrel']:.2f} %, scale jitter mean {100 * j['mean']:.3f} % max {100 * j['max']:.3f} %")
+        person = f" (person masks {100 * r['depth_absrel_person']:.2f} %)" if r.get("depth_absrel_person") is not None else ""
+        print(f"{name}: stage-1 depth AbsRel {100 * r['depth_absrel']:.2f} %{person}, scale jitter mean {100 * j['mean']:.3f} % max {100 * j['max']:.3f} %")
     print("per camera (trained): " + ", ".join(f"{c} {v['psnr']:.2f} dB" for c, v in t["cameras"].items()))
     return 0
 

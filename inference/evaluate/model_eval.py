@@ -48,18 +48,26 @@ def oracle_twin(model: SplatSAP) -> SplatSAP:
     return twin.eval()
 
 
-def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int]) -> list[float]:
-    """AbsRel of stage 1's depth in each source against ground truth (coarse, pinhole), over the
-    pixels the other source also sees. One figure per source that has such pixels."""
-    cams = {c: pinhole(fs.cameras[c], coarse) for c in (source.left, source.right)}
-    pred_l = affine.points_left[0, 2].detach().cpu().numpy()
+def _source_depths(affine, L, R, source: FrameSource) -> dict:
+    """Stage 1's depth (coarse) in each source's own camera."""
     to_right = relative_pose(R.poses, L.poses)
-    pred_r = transform_points(to_right, affine.points_right)[0, 2].detach().cpu().numpy()
+    return {source.left: affine.points_left[0, 2].detach().cpu().numpy(),
+            source.right: transform_points(to_right, affine.points_right)[0, 2].detach().cpu().numpy()}
+
+
+def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None) -> list[float]:
+    """AbsRel of stage 1's depth in each source against ground truth (coarse, pinhole), over the
+    pixels the other source also sees (and, given `masks` per source at the coarse size, that lie in
+    the mask). One figure per source that has such pixels."""
+    cams = {c: pinhole(fs.cameras[c], coarse) for c in (source.left, source.right)}
+    pred = _source_depths(affine, L, R, source)
     out = []
-    for c, other, pred in ((source.left, source.right, pred_l), (source.right, source.left, pred_r)):
+    for c, other in ((source.left, source.right), (source.right, source.left)):
         seen = covisibility(cams[c], gt_coarse[c], [(cams[other], gt_coarse[other])])
+        if masks is not None:
+            seen = seen & masks[c]
         if seen.any():
-            out.append(float(np.mean(np.abs(pred[seen] - gt_coarse[c][seen]) / gt_coarse[c][seen])))
+            out.append(float(np.mean(np.abs(pred[c][seen] - gt_coarse[c][seen]) / gt_coarse[c][seen])))
     return out
 
 
@@ -102,6 +110,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
     picks = list(range(0, len(source), every))[: max_sets or None]
     per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
     absrel: list[float] = []
+    absrel_person: list[float] = []
     scales: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
     for n, index in enumerate(picks):
         fs = source.frame_set(index, with_truth=True)
@@ -115,6 +124,9 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         if have_depth:
             gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
             absrel += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
+            if all(fs.masks.get(c) is not None for c in (source.left, source.right)):
+                masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (source.left, source.right)}
+                absrel_person += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, masks)
         for sup in source.supervision:
             T = pre.views(fs, [sup], sizes.output)
             mask = None
@@ -147,6 +159,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         "sets": len(picks), "every": every, "supervision": list(source.supervision),
         **model_figures,
         "depth_absrel": round(float(np.mean(absrel)), 5) if absrel else None,
+        "depth_absrel_person": round(float(np.mean(absrel_person)), 5) if absrel_person else None,
         "scale_jitter": {"mean": round(float(np.mean(jitter)), 6), "max": round(float(np.max(jitter)), 6), "pairs": len(jitter)} if jitter else None,
         "references": out,
     }

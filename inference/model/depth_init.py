@@ -105,8 +105,9 @@ def _occlusion_blend(index: torch.Tensor, weight: torch.Tensor, depth: torch.Ten
     # Per pixel, bins + 1 slots: an empty slot 0 (nothing nearer than the nearest bin), then the bins.
     slots = bins + 1
     slot = index * slots + lower.to(torch.int64) + 1
+    # One scatter for both bins of every contribution (ONNX Runtime copies the histogram per scatter).
     hist = torch.zeros(b, pixels * slots, dtype=weight.dtype, device=weight.device)
-    hist = hist.scatter_add(1, slot, weight * (1.0 - frac)).scatter_add(1, slot + 1, weight * frac)
+    hist = hist.scatter_add(1, torch.cat([slot, slot + 1], dim=1), torch.cat([weight * (1.0 - frac), weight * frac], dim=1))
     # Coverage at or nearer than each bin, read between slots at the contribution's depth minus the
     # margin (linear between slots, 0 at slot 0: continuous wherever the contribution lies).
     nearer = torch.cumsum(hist.reshape(b, pixels, slots), dim=2).reshape(b, pixels * slots)

@@ -445,6 +445,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
               f"{fmt(o.get('psnr_mask'), '%10.2f'):>10s} {fmt(o.get('ssim_mask'), '%10.3f'):>10s}")
     if result["depth_absrel"] is not None:
         print(f"stage-1 depth AbsRel (pixels both sources see): {100 * result['depth_absrel']:.2f} %")
+    if result.get("depth_absrel_person") is not None:
+        print(f"  on the person masks: {100 * result['depth_absrel_person']:.2f} %")
     if result["scale_jitter"] is not None:
         j = result["scale_jitter"]
         print(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")

@@ -42,6 +42,7 @@ def test_eval_reports_image_depth_and_scale_figures_with_references(take, checkp
     assert any(c["psnr_mask"] is not None for c in out["cameras"].values())
     # Depth against ground truth on co-visible pixels: an untrained model is far off, but finite.
     assert 0 < out["depth_absrel"] < 10
+    assert 0 < out["depth_absrel_person"] < 10  # simulator takes carry person masks
     # An untrained scale head gives S = baseline on every set: no jitter between consecutive sets.
     assert out["scale_jitter"]["pairs"] == 1 and out["scale_jitter"]["max"] == pytest.approx(0, abs=1e-6)
     refs = out["references"]
