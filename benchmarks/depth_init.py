@@ -66,16 +66,18 @@ def main() -> int:
         L = pre.views(fs, [data.left], sizes.fine)
         R = pre.views(fs, [data.right], sizes.fine)
         depth = [torch.from_numpy(pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse))[None, None] for c in (data.left, data.right)]
+        stage1 = None  # the points and opacities depth init reads: the same for every target, so computed once
         for sup in data.supervision:
             T = pre.views(fs, [sup], sizes.output)
             truth = torch.from_numpy(pre.depth(fs.depth[sup], fs.cameras[sup], sizes.fine))
             person = torch.from_numpy(pre.depth(fs.masks[sup].astype(np.float32), fs.cameras[sup], sizes.fine) > 0.5) if fs.masks.get(sup) is not None else None
             with torch.no_grad():
-                out = model.run(L.images, R.images, L.K, R.K, L.poses, R.poses, T.K, T.poses, *depth)
+                if stage1 is None:
+                    stage1 = list(model.run(L.images, R.images, L.K, R.K, L.poses, R.poses, T.K, T.poses, *depth)["stage1"].values())
                 to_target = relative_pose(T.poses, L.poses)
                 target_K = resize_intrinsics(T.K, sizes.output, sizes.fine)
                 for name, layer in layers.items():
-                    got = layer(*out["stage1"].values(), to_target, target_K).depth[0, 0]
+                    got = layer(*stage1, to_target, target_K).depth[0, 0]
                     ok = truth > 0
                     rel = (got - truth).abs() / truth.clamp(min=1e-6)
                     s = scores[name]
