@@ -262,10 +262,11 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 }
 
 
-# Settings that no weight depends on: how depth init splats and blends, how the Gaussian plane is
-# rendered, how colour init fades a source at its border. A run may start from weights trained
-# with other values of these (fine-tuning to them).
-WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp"}}
+# Settings that no weight's shape depends on: how depth init splats and blends, how the Gaussian
+# plane is rendered, how colour init fades a source at its border, and how far and in how many
+# candidates depth refinement searches (its 3-D convolutions slide along the candidates). A run may
+# start from weights trained with other values of these (fine-tuning to them).
+WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"}}
 
 
 def weight_differences(a: "ModelConfig", b: "ModelConfig") -> list[str]:

@@ -144,12 +144,34 @@ class TrainConfig:
         if not isinstance(d, dict):
             raise InferenceError("training config: expected an object")
         d = dict(d)
-        model = ModelConfig.from_dict(d.pop("model"), saved=saved) if "model" in d else None
+        model = None
+        if "model" in d:
+            given = d.pop("model")
+            model = ModelConfig.from_dict(given if saved else _over_default_model(given), saved=saved)
         cfg = _build(cls, d, "train")
         if model is not None:
             cfg.model = model
         cfg.check()
         return cfg
+
+
+def _over_default_model(given: Any) -> Any:
+    """A "model" section a user writes: its keys over rig train's default model of the backbone it
+    names (stereo at the preview size unless it says otherwise), section by section, as every other
+    key of a training configuration overrides its default."""
+    if not isinstance(given, dict):
+        return given  # ModelConfig.from_dict says what is wrong with it
+    backbone = given.get("backbone")
+    kind = backbone.get("kind") if isinstance(backbone, dict) else None
+    default = TrainConfig().model
+    base = ModelConfig.for_backbone(kind, default.sizes) if isinstance(kind, str) and kind != default.backbone.kind else default
+    out = base.to_dict()
+    for section, value in given.items():
+        if isinstance(value, dict) and isinstance(out.get(section), dict):
+            out[section] = {**out[section], **value}
+        else:
+            out[section] = value
+    return out
 
 
 def _build(cls, d: dict, where: str):
