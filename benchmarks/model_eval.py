@@ -77,6 +77,10 @@ def main() -> int:
         j = r["scale_jitter"]
         person = f" (person masks {100 * r['depth_absrel_person']:.2f} %)" if r.get("depth_absrel_person") is not None else ""
         print(f"{name}: stage-1 depth AbsRel {100 * r['depth_absrel']:.2f} %{person}, scale jitter mean {100 * j['mean']:.3f} % max {100 * j['max']:.3f} %")
+        if r.get("depth_scale"):
+            d = r["depth_scale"]
+            print(f"{name}: stage-1 depth scale (median depth / truth) {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}, "
+                  f"AbsRel once divided by it {100 * d['absrel_scale_free']:.2f} %")
     print("per camera (trained): " + ", ".join(f"{c} {v['psnr']:.2f} dB" for c, v in t["cameras"].items()))
     return 0
 

@@ -134,12 +134,22 @@ class Stage1Config:
     # What S multiplies exp(r tanh(MLP / r)) by, i.e. S of an untrained model: "baseline" for a
     # canonical point map (mean distance 1), "one" for metric point maps (the MASt3R metric checkpoint).
     scale_reference: str = "baseline"
+    # After S and T: both point maps scaled by the factor (within 1 +- scale_search_range, from
+    # scale_search candidates) at which the two sources re-project best onto each other
+    # (inference/model/scale_search.py; no weights). 0: off. The shipped model turns it on (21);
+    # training with it on is untried, so a new model starts without it.
+    scale_search: int = 0
+    scale_search_range: float = 0.2
 
     def __post_init__(self) -> None:
         if self.affine not in ("learned", "bypass"):
             raise InferenceError(f"stage1: affine must be learned or bypass, got '{self.affine}'")
         if self.scale_reference not in ("baseline", "one"):
             raise InferenceError(f"stage1: scale_reference must be baseline or one, got '{self.scale_reference}'")
+        if not isinstance(self.scale_search, int) or isinstance(self.scale_search, bool) or self.scale_search < 0 or self.scale_search == 1:
+            raise InferenceError(f"stage1: scale_search must be 0 (off) or an integer >= 2, got {self.scale_search!r}")
+        if not 0 < self.scale_search_range < 1:
+            raise InferenceError(f"stage1: scale_search_range must be between 0 and 1, got {self.scale_search_range!r}")
 
 
 ZBUFFERS = ("occlusion", "reference")
@@ -263,10 +273,11 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 
 
 # Settings that no weight's shape depends on: how depth init splats and blends, how the Gaussian
-# plane is rendered, how colour init fades a source at its border, and how far and in how many
-# candidates depth refinement searches (its 3-D convolutions slide along the candidates). A run may
-# start from weights trained with other values of these (fine-tuning to them).
-WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"}}
+# plane is rendered, how colour init fades a source at its border, how far and in how many
+# candidates depth refinement searches (its 3-D convolutions slide along the candidates), and stage
+# 1's scale search. A run may start from weights trained with other values of these (fine-tuning to them).
+WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
+                               "stage1": {"scale_search", "scale_search_range"}}
 
 
 def weight_differences(a: "ModelConfig", b: "ModelConfig") -> list[str]:

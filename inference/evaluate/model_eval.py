@@ -5,7 +5,9 @@ sources; against the camera's real image (undistorted, at the output size):
 - PSNR and SSIM over the full image and over the person mask (where the sequence carries one:
   simulator takes do);
 - stage 1's depth against ground truth (where it exists): AbsRel = mean |d - d*| / d* over the
-  pixels of each source that the other source also sees (from the ground-truth depths);
+  pixels of each source that the other source also sees (from the ground-truth depths), and that
+  error split into scale (the median of d / d* per source and set) and shape (AbsRel after dividing
+  by it);
 - the frame-to-frame jitter of stage 1's scaling S: |S_t - S_{t-1}| / S_{t-1} on consecutive sets
   of a sequence (mean and max over the pairs, the three components averaged).
 The same figures for two references in the same run: the oracle pipeline (ground-truth depth
@@ -55,10 +57,10 @@ def _source_depths(affine, L, R, source: FrameSource) -> dict:
             source.right: transform_points(to_right, affine.points_right)[0, 2].detach().cpu().numpy()}
 
 
-def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None) -> list[float]:
-    """AbsRel of stage 1's depth in each source against ground truth (coarse, pinhole), over the
-    pixels the other source also sees (and, given `masks` per source at the coarse size, that lie in
-    the mask). One figure per source that has such pixels."""
+def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None) -> list[np.ndarray]:
+    """Stage 1's depth over ground truth in each source (coarse, pinhole), on the pixels the other
+    source also sees (and, given `masks` per source at the coarse size, that lie in the mask). One
+    array per source that has such pixels."""
     cams = {c: pinhole(fs.cameras[c], coarse) for c in (source.left, source.right)}
     pred = _source_depths(affine, L, R, source)
     out = []
@@ -67,7 +69,22 @@ def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse
         if masks is not None:
             seen = seen & masks[c]
         if seen.any():
-            out.append(float(np.mean(np.abs(pred[c][seen] - gt_coarse[c][seen]) / gt_coarse[c][seen])))
+            out.append(pred[c][seen] / gt_coarse[c][seen])
+    return out
+
+
+def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None) -> list[float]:
+    """AbsRel of stage 1's depth in each source against ground truth (see _depth_ratios for the pixels)."""
+    return [float(np.mean(np.abs(r - 1.0))) for r in _depth_ratios(affine, L, R, fs, source, gt_coarse, coarse, masks)]
+
+
+def stage1_scale_split(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int]) -> list[tuple[float, float]]:
+    """Stage 1's depth error split into its scale and its shape, per source: the median of depth over
+    ground truth (1: the metric scale is right) and the AbsRel left once the depth is divided by it."""
+    out = []
+    for r in _depth_ratios(affine, L, R, fs, source, gt_coarse, coarse):
+        med = float(np.median(r))
+        out.append((med, float(np.mean(np.abs(r / med - 1.0)))))
     return out
 
 
@@ -111,6 +128,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
     per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
     absrel: list[float] = []
     absrel_person: list[float] = []
+    split: list[tuple[float, float]] = []
     scales: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
     for n, index in enumerate(picks):
         fs = source.frame_set(index, with_truth=True)
@@ -124,6 +142,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         if have_depth:
             gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
             absrel += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
+            split += stage1_scale_split(affine, L, R, fs, source, gt_coarse, sizes.coarse)
             if all(fs.masks.get(c) is not None for c in (source.left, source.right)):
                 masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (source.left, source.right)}
                 absrel_person += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, masks)
@@ -160,6 +179,10 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         **model_figures,
         "depth_absrel": round(float(np.mean(absrel)), 5) if absrel else None,
         "depth_absrel_person": round(float(np.mean(absrel_person)), 5) if absrel_person else None,
+        # Where stage 1's depth error lies: its scale per source and frame set (median depth over
+        # truth) and its shape (AbsRel once each is divided by that median).
+        "depth_scale": {"median_ratio_min": round(min(m for m, _ in split), 4), "median_ratio_max": round(max(m for m, _ in split), 4),
+                        "absrel_scale_free": round(float(np.mean([a for _, a in split])), 5)} if split else None,
         "scale_jitter": {"mean": round(float(np.mean(jitter)), 6), "max": round(float(np.max(jitter)), 6), "pairs": len(jitter)} if jitter else None,
         "references": out,
     }

@@ -117,7 +117,7 @@ class SplatSAP(nn.Module):
             right_K_c = resize_intrinsics(right_K, s.fine, s.coarse)
             pm = self.point_init(left_c, right_c, left_K_c, right_K_c, right_to_left, left_depth, right_depth)
         with self._stage("affine_transform"):
-            affine = self.affine_transform(pm, left_K_c, right_K_c, right_to_left)
+            affine = self.affine_transform(pm, left_K_c, right_K_c, right_to_left, left_c, right_c)
         with self._stage("depth_init"):
             stage1 = dict(zip(STAGE1_OUTPUT_NAMES, (affine.points_left, affine.points_right, confidence_to_opacity(pm.conf_left), confidence_to_opacity(pm.conf_right))))
             init = self.depth_init(*stage1.values(), left_to_target, target_K_fine)

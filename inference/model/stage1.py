@@ -25,6 +25,7 @@ import torch.nn.functional as F
 
 from inference.config import Stage1Config
 from inference.model.backbone import PointMaps
+from inference.model.scale_search import ScaleSearch, rescale
 from inference.model.geometry import (
     in_image,
     invert_pose,
@@ -174,9 +175,12 @@ class AffineTransform(nn.Module):
         if cfg.affine == "learned":
             self.scale_head = ScaleHead(cfg, token_dim)
             self.translation = TranslationGRU(cfg, token_dim)
+            if cfg.scale_search:
+                self.scale_search = ScaleSearch(cfg.scale_search, cfg.scale_search_range)
 
-    def forward(self, pm: PointMaps, left_K: torch.Tensor, right_K: torch.Tensor, right_to_left: torch.Tensor) -> AffineOutput:
-        """Intrinsics are for the coarse size."""
+    def forward(self, pm: PointMaps, left_K: torch.Tensor, right_K: torch.Tensor, right_to_left: torch.Tensor,
+                left_image: torch.Tensor | None = None, right_image: torch.Tensor | None = None) -> AffineOutput:
+        """Intrinsics and images are for the coarse size; the images serve the scale search (cfg.scale_search)."""
         if self.cfg.affine == "bypass":
             zeros = torch.zeros_like(pm.points_left)
             one = torch.ones(pm.points_left.shape[0], 3, dtype=zeros.dtype, device=zeros.device)
@@ -206,4 +210,11 @@ class AffineTransform(nn.Module):
         t = F.interpolate(t, size=(ch, cw), mode="bilinear", align_corners=False)
         t_l, t_r = t[:b], t[b:]
         sv = s.reshape(b, 3, 1, 1)
-        return AffineOutput(sv * pm.points_left + t_l, sv * pm.points_right + t_r, s, t_l, t_r)
+        points_left, points_right = sv * pm.points_left + t_l, sv * pm.points_right + t_r
+        if self.cfg.scale_search:
+            if left_image is None or right_image is None:
+                raise ValueError("the scale search needs both coarse images")
+            k = self.scale_search(points_left, points_right, left_image, right_image, left_K, right_K, right_to_left)
+            points_left, points_right = rescale(points_left, points_right, k, right_to_left)
+            s = s * k[:, None]
+        return AffineOutput(points_left, points_right, s, t_l, t_r)

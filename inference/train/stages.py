@@ -79,7 +79,7 @@ def stage1_forward(model: SplatSAP, left: Views, right: Views):
     kr = resize_intrinsics(right.K, s.fine, s.coarse)
     r2l = relative_pose(left.poses, right.poses)
     pm = model.point_init(left_c, right_c, kl, kr, r2l)
-    affine = model.affine_transform(pm, kl, kr, r2l)
+    affine = model.affine_transform(pm, kl, kr, r2l, left_c, right_c)
     return left_c, right_c, kl, kr, r2l, pm, affine
 
 

@@ -447,6 +447,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"stage-1 depth AbsRel (pixels both sources see): {100 * result['depth_absrel']:.2f} %")
     if result.get("depth_absrel_person") is not None:
         print(f"  on the person masks: {100 * result['depth_absrel_person']:.2f} %")
+    if result.get("depth_scale") is not None:
+        d = result["depth_scale"]
+        print(f"  scale (median depth / truth per source and set): {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}; "
+              f"AbsRel once divided by it: {100 * d['absrel_scale_free']:.2f} %")
     if result["scale_jitter"] is not None:
         j = result["scale_jitter"]
         print(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")

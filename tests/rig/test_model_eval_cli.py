@@ -43,6 +43,9 @@ def test_eval_reports_image_depth_and_scale_figures_with_references(take, checkp
     # Depth against ground truth on co-visible pixels: an untrained model is far off, but finite.
     assert 0 < out["depth_absrel"] < 10
     assert 0 < out["depth_absrel_person"] < 10  # simulator takes carry person masks
+    # The error split into scale (median depth / truth per source and set) and shape.
+    d = out["depth_scale"]
+    assert 0 < d["median_ratio_min"] <= d["median_ratio_max"] and 0 <= d["absrel_scale_free"] < 10
     # An untrained scale head gives S = baseline on every set: no jitter between consecutive sets.
     assert out["scale_jitter"]["pairs"] == 1 and out["scale_jitter"]["max"] == pytest.approx(0, abs=1e-6)
     refs = out["references"]
@@ -53,4 +56,4 @@ def test_eval_reports_image_depth_and_scale_figures_with_references(take, checkp
     t = subprocess.run([sys.executable, "-m", "rig", "model", "eval", "--model", str(checkpoint), "--sequence", str(take),
                         "--max-sets", "1", "--no-references"], capture_output=True, text=True, timeout=300)
     assert t.returncode == 0, t.stderr
-    assert "PSNR" in t.stdout and "AbsRel" in t.stdout and "oracle" not in t.stdout
+    assert "PSNR" in t.stdout and "AbsRel" in t.stdout and "median depth / truth" in t.stdout and "oracle" not in t.stdout

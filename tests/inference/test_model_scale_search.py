@@ -1,0 +1,92 @@
+"""Stage 1's scale search: the factor at which the two sources re-project onto each other."""
+from __future__ import annotations
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+from plane_scene import camera, view_of_plane
+
+from inference.config import BackboneConfig, ModelConfig, Stage1Config
+from inference.export import _quiet
+from inference.model.backbone import OracleBackbone
+from inference.model.geometry import relative_pose
+from inference.model.scale_search import ScaleSearch, rescale
+from inference.model.stage1 import AffineTransform
+
+SIZE = (128, 96)
+
+
+def t(a) -> torch.Tensor:
+    return torch.tensor(np.asarray(a), dtype=torch.float32)[None]
+
+
+def scene():
+    left = camera("left", (-1.2, 1.2, -3.0), SIZE)
+    right = camera("right", (1.2, 1.2, -3.0), SIZE)
+    (img_l, d_l), (img_r, d_r) = view_of_plane(left), view_of_plane(right)
+    r2l = relative_pose(t(left.extrinsic), t(right.extrinsic))
+    bb = OracleBackbone(BackboneConfig(kind="oracle", patch=16), SIZE)
+    images = t(img_l).permute(0, 3, 1, 2), t(img_r).permute(0, 3, 1, 2)
+    pm = bb(*images, t(left.K), t(right.K), r2l, t(d_l)[:, None], t(d_r)[:, None])
+    return pm, images, t(left.K), t(right.K), r2l
+
+
+@pytest.mark.parametrize("wrong", [0.88, 1.0, 1.13])
+def test_the_search_undoes_a_scale_error_of_both_views(wrong):
+    pm, (img_l, img_r), kl, kr, r2l = scene()
+    # Depth off by `wrong` in both views, each about its own camera (what a backbone's scale error does).
+    pts_l, pts_r = rescale(pm.points_left, pm.points_right, torch.tensor([wrong]), r2l)
+    search = ScaleSearch(21, 0.2)
+    with torch.no_grad():
+        k = search(pts_l, pts_r, img_l, img_r, kl, kr, r2l)
+    assert float(k) == pytest.approx(1.0 / wrong, rel=0.01)  # measured within 0.4 %
+    fixed_l, fixed_r = rescale(pts_l, pts_r, k, r2l)
+    for got, truth in ((fixed_l, pm.points_left), (fixed_r, pm.points_right)):
+        rel = ((got - truth).norm(dim=1) / truth.norm(dim=1)).mean()
+        assert float(rel) < 0.01
+    # The error curve has its minimum at the right factor, not at an end of the range.
+    e = search.errors(pts_l, img_l, img_r, torch.linalg.inv(r2l), kr)[0]
+    best = float(torch.exp(search.log_factors[int(e.argmin())]))
+    assert best == pytest.approx(1.0 / wrong, abs=0.02)
+
+
+def test_the_affine_transform_applies_it_only_when_configured():
+    pm, (img_l, img_r), kl, kr, r2l = scene()
+    rescaled = pm.__class__(*rescale(pm.points_left, pm.points_right, torch.tensor([1.1]), r2l), pm.conf_left, pm.conf_right,
+                            pm.tokens_left, pm.tokens_right, pm.token_grid)
+    off = AffineTransform(Stage1Config(affine="learned", scale_reference="one", iterations=1), pm.tokens_left.shape[-1], SIZE).eval()
+    on = AffineTransform(Stage1Config(affine="learned", scale_reference="one", iterations=1, scale_search=21), pm.tokens_left.shape[-1], SIZE).eval()
+    on.load_state_dict(off.state_dict())
+    with torch.no_grad():
+        a = off(rescaled, kl, kr, r2l)
+        b = on(rescaled, kl, kr, r2l, img_l, img_r)
+    # Untrained: S = 1, T = 0, so the search alone moves the points, back to the truth.
+    assert torch.equal(a.points_left, rescaled.points_left)
+    assert float(((b.points_left - pm.points_left).norm(dim=1) / pm.points_left.norm(dim=1)).mean()) < 0.01
+    assert float(b.scale[0, 0]) == pytest.approx(1 / 1.1, rel=0.01)
+    with pytest.raises(ValueError, match="coarse images"):
+        on(rescaled, kl, kr, r2l)
+
+
+def test_a_model_saved_without_the_key_keeps_it_off_and_bad_values_are_refused():
+    d = ModelConfig().to_dict()
+    del d["stage1"]["scale_search"]
+    assert ModelConfig.from_dict(d, saved=True).stage1.scale_search == 0
+    for bad in ({"scale_search": 1}, {"scale_search": -3}, {"scale_search": 2.5}, {"scale_search_range": 1.5}):
+        with pytest.raises(Exception, match="scale_search"):
+            Stage1Config(**bad)
+
+
+def test_onnx_runtime_finds_the_same_factor():
+    pm, (img_l, img_r), kl, kr, r2l = scene()
+    pts_l, pts_r = rescale(pm.points_left, pm.points_right, torch.tensor([1.07]), r2l)
+    search = ScaleSearch(21, 0.2).eval()
+    args = (pts_l, pts_r, img_l, img_r, kl, kr, r2l)
+    with torch.no_grad(), _quiet():
+        program = torch.onnx.export(search, args, dynamo=True, opset_version=18)
+    sess = ort.InferenceSession(program.model_proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {i.name: a.numpy() for i, a in zip(sess.get_inputs(), args)})[0]
+    with torch.no_grad():
+        ref = search(*args).numpy()
+    assert abs(float(got[0]) - float(ref[0])) < 1e-5
