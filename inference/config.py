@@ -136,8 +136,8 @@ class Stage1Config:
     scale_reference: str = "baseline"
     # After S and T: both point maps scaled by the factor (within 1 +- scale_search_range, from
     # scale_search candidates) at which the two sources re-project best onto each other
-    # (inference/model/scale_search.py; no weights). 0: off. The shipped model turns it on (21);
-    # training with it on is untried, so a new model starts without it.
+    # (inference/model/scale_search.py; no weights). 0: off (models/candidates/README.md says why
+    # the shipped model does not use it yet); training stage 1 with it on is untried.
     scale_search: int = 0
     scale_search_range: float = 0.2
 
