@@ -48,31 +48,42 @@ def test_gopro_frames_are_aligned_to_the_pulses(tmp_path, monkeypatch):
             e.stop()
     assert not result.errors, result.errors
     assert result.flashes == 2
+    live = [json.loads(line) for line in (tmp_path / "take" / INDEX).read_text().splitlines()]
     report = align(tmp_path / "take")
     rows = [json.loads(line) for line in (tmp_path / "take" / INDEX).read_text().splitlines()]
     hw = np.array([(r["trigger"], r["frames"]["left"]["device_ts_ns"]) for r in rows if r["frames"]["left"]], dtype=np.float64)
     ns_per_pulse, at_zero = np.polyfit(hw[:, 0], hw[:, 1], 1)
+    first, last = min(r["trigger"] for r in rows), max(r["trigger"] for r in rows)
+
+    def pulse_of(t0: float, f: dict) -> tuple[float, int]:
+        pos = (t0 * 1e9 + f["device_ts_ns"] - at_zero) / ns_per_pulse  # its exposure start on the simulated clock
+        return pos, int(np.floor(pos + 0.5))
+
     for cam in cfg.cameras[1:3]:
         rep = report["cameras"][cam.name]
         assert rep["problem"] is None, rep
         t0 = starts[cam.uri.split("//")[1].split("@")[0]]
+        # The frames of the take exposed within its pulses: a frame exposed before the first pulse
+        # (the stream's latency, a few hundred ms, delivers some after the take began) has no set.
+        placeable = sum(1 for r in live if r["frames"][cam.name] is not None and first <= pulse_of(t0, r["frames"][cam.name])[1] <= last)
         wrong, worst, n = 0, 0.0, 0
         for r in rows:
             f = r["frames"][cam.name]
             if f is None:
                 continue
-            start = t0 * 1e9 + f["device_ts_ns"]  # its exposure start on the simulated clock, ns
-            pos = (start - at_zero) / ns_per_pulse
-            nearest = int(np.floor(pos + 0.5))
+            pos, nearest = pulse_of(t0, f)
             n += 1
             if nearest != r["trigger"]:
                 wrong += 1
             else:
                 worst = max(worst, abs((pos - nearest) - f["offset"]))
-        print(f"{cam.name}: {n} frames placed ({rep['moved']} moved from the live grouping), {wrong} in the wrong set, "
+        print(f"{cam.name}: {n} frames placed of {placeable} exposed within the take's pulses ({result.frames[cam.name]} received; "
+              f"{rep['moved']} moved from the live grouping), {wrong} in the wrong set, "
               f"offset error at most {worst:.4f} periods; latency {rep['latency_ms']} ms, clock {rep['rate_ppm']} ppm")
-        # Every frame the take holds is placed (how many arrive depends on how loaded the two cores
-        # are: a floor of a quarter of the stream's rate only says the stream kept flowing).
-        assert n >= 0.95 * result.frames[cam.name] and wrong == 0, (cam.name, n, result.frames[cam.name], wrong)
+        # Every frame exposed within the take's pulses is placed (how many arrive depends on how loaded
+        # the two cores are: a floor of a quarter of the stream's rate only says the stream kept flowing).
+        # It asked for 95 % of every frame received, and failed once at 90 of 95: the 5 were exposed
+        # before the first pulse (latency 344 ms at 15 fps).
+        assert n >= 0.95 * placeable and wrong == 0, (cam.name, n, placeable, result.frames[cam.name], wrong)
         assert n >= 0.25 * len(rows) * cam.fps / cfg.trigger.rate_hz, (cam.name, n, len(rows))
         assert worst < 0.1, (cam.name, worst)
