@@ -27,7 +27,10 @@ SHARPNESS = 0.05
 
 
 def _ssim_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(1 - SSIM) / 2 per pixel over 3x3 windows (B, 1, H, W), averaged over the channels."""
+    """(1 - SSIM) / 2 per pixel over 3x3 windows (B, 1, H, W), averaged over the channels. Not the
+    training loss's SSIM (inference/train/losses.py, 11x11 Gaussian): the model does not import the
+    trainer, and a 3x3 box over 21 candidates x 2 views is the cheaper, local one monocular-depth
+    photometric errors use."""
     pool = lambda x: F.avg_pool2d(x, 3, 1, 1, count_include_pad=False)  # noqa: E731
     mu_a, mu_b = pool(a), pool(b)
     var_a = pool(a * a) - mu_a * mu_a

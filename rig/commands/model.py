@@ -75,7 +75,7 @@ def register(subparsers) -> None:
 
     v = sub.add_parser("eval", help="PSNR/SSIM, depth error and scale jitter on sequences with supervision cameras",
                        description="Render every supervision camera of every (or every k-th) frame set from the two sources and report "
-                                   "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth (simulator "
+                                   "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth, split into scale and shape (simulator "
                                    "takes) and the frame-to-frame jitter of stage 1's scaling S; with the oracle pipeline (same stage-2 "
                                    "weights) and the nearer source image as references. LPIPS is not reported (it needs pretrained weights).")
     v.add_argument("--model", metavar="MODEL",

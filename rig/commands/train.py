@@ -28,7 +28,7 @@ def register(sub) -> None:
     p.add_argument("--config", type=Path, help="training configuration (JSON, the keys of inference.train.config.TrainConfig)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     p.add_argument("--init", type=Path, metavar="CKPT",
-                   help="start a new run (its own schedule) from the weights of a checkpoint of the same model configuration (settings no weight depends on, such as depth init's z-buffer, may differ)")
+                   help="start a new run (its own schedule) from the weights of a checkpoint of the same model configuration (settings no weight's shape depends on, such as depth init's z-buffer, depth refinement's search or stage 1's scale search, may differ)")
     p.add_argument("--size", choices=("paper", "preview", "test"), help="model sizes (default preview)")
     p.add_argument("--backbone", choices=("stereo", "tiny", "mast3r"),
                    help="point-map backbone (default stereo); mast3r: the pretrained MASt3R network, its weights from --weights, "
