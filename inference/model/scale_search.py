@@ -8,8 +8,10 @@ own only at the right k. For `candidates` factors k, geometric between 1 / (1 + 
 views are warped into each other and compared (0.85 (1 - SSIM) / 2 + 0.15 L1, the self-supervised
 monocular-depth photometric error, on the pixels that land inside the other image); the factor is
 the softmin-weighted geometric mean of the candidates, with a temperature that follows the spread of
-the errors, so it moves continuously with the inputs (ONNX Runtime and torch agree) and no weight is
-learned. Both point maps are then scaled by it about their own cameras.
+the errors, so it moves continuously with the inputs and no weight is learned. Both point maps are
+then scaled by it about their own cameras. The errors are computed in double precision: the softmin
+follows differences of parts in a million between them, where float32's rounding differs between
+torch and ONNX Runtime (see `errors`).
 """
 from __future__ import annotations
 
@@ -26,12 +28,28 @@ from inference.model.geometry import in_image, invert_pose, normalise_pixels, pr
 SHARPNESS = 0.05
 
 
+def _box3(x: torch.Tensor) -> torch.Tensor:
+    """The mean over each pixel's 3x3 window within the image (B, C, H, W), as avg_pool2d(x, 3, 1, 1,
+    count_include_pad=False) computes it, but from slices and sums: ONNX Runtime's AveragePool has no
+    double kernel, and the search's errors are computed in double (see ScaleSearch.errors)."""
+    h, w = x.shape[-2:]
+    p = F.pad(x, (1, 1, 1, 1))
+    rows = p[..., 0:h, :] + p[..., 1:h + 1, :] + p[..., 2:h + 2, :]
+    box = rows[..., 0:w] + rows[..., 1:w + 1] + rows[..., 2:w + 2]
+    # Pixels per window: 3 inside, 2 on the border row or column.
+    ny = torch.full((h, 1), 3.0, dtype=x.dtype, device=x.device)
+    ny[0], ny[-1] = 2.0, 2.0
+    nx = torch.full((1, w), 3.0, dtype=x.dtype, device=x.device)
+    nx[:, 0], nx[:, -1] = 2.0, 2.0
+    return box / ny / nx  # two small divisors: their (H, W) product would be a constant in the export
+
+
 def _ssim_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(1 - SSIM) / 2 per pixel over 3x3 windows (B, 1, H, W), averaged over the channels. Not the
     training loss's SSIM (inference/train/losses.py, 11x11 Gaussian): the model does not import the
     trainer, and a 3x3 box over 21 candidates x 2 views is the cheaper, local one monocular-depth
     photometric errors use."""
-    pool = lambda x: F.avg_pool2d(x, 3, 1, 1, count_include_pad=False)  # noqa: E731
+    pool = _box3
     mu_a, mu_b = pool(a), pool(b)
     var_a = pool(a * a) - mu_a * mu_a
     var_b = pool(b * b) - mu_b * mu_b
@@ -59,7 +77,11 @@ class ScaleSearch(nn.Module):
         uv, z = project(transform_points(rep(self_to_other), pts), rep(other_K))
         visible = in_image(uv, z, w, h)
         warped = F.grid_sample(rep(image_other), normalise_pixels(uv, w, h), mode="bilinear", padding_mode="zeros", align_corners=False)
-        own = rep(image_self)
+        # The error in double precision: the 21 candidates' errors differ by parts in a thousand,
+        # and float32's rounding of the SSIM terms (1e-7 of an error of 0.4, in a direction that
+        # differs between torch and ONNX Runtime) moved the factor by 5e-6, which the edges of
+        # the target view turn into 5e-3 of image. In double the factor agrees within 1e-8.
+        warped, own, visible = warped.double(), rep(image_self).double(), visible.double()
         err = 0.85 * _ssim_error(warped, own) + 0.15 * (warped - own).abs().mean(dim=1, keepdim=True)
         per = (err * visible).flatten(1).sum(1) / visible.flatten(1).sum(1).clamp(min=1.0)
         return per.reshape(b, n)
@@ -73,7 +95,7 @@ class ScaleSearch(nn.Module):
         low = e.min(dim=1, keepdim=True).values
         temperature = SHARPNESS * (e.mean(dim=1, keepdim=True) - low) + 1e-6
         weights = torch.softmax(-(e - low) / temperature, dim=1)
-        return torch.exp((weights * self.log_factors.reshape(1, -1)).sum(dim=1))
+        return torch.exp((weights * self.log_factors.to(e.dtype).reshape(1, -1)).sum(dim=1)).to(points_left.dtype)
 
 
 def rescale(points_left: torch.Tensor, points_right: torch.Tensor, factor: torch.Tensor, right_to_left: torch.Tensor):
