@@ -36,8 +36,15 @@ def _rig(folder: Path, led: bool = True) -> Path:
     return path
 
 
-def _truth_errors(take: Path) -> dict[str, tuple[int, float, int]]:
-    """Per free camera: frames in the wrong set, the largest offset error (pulse periods), frames checked."""
+# Periods either side of half-way between two pulses where a frame may go to either set: the
+# estimated clock places frames within 0.006 periods of the truth (measured), and a free camera at
+# 29.97 fps against 30 Hz pulses drifts 0.001 periods a frame, so a few frames of a take lie there.
+BOUNDARY = 0.02
+
+
+def _truth_errors(take: Path) -> dict[str, tuple[list, float, int]]:
+    """Per free camera: the frames in the wrong set (set, periods after its pulse, offset given), the
+    largest offset error of the others (pulse periods), frames checked."""
     cfg = load_config(take / "rig.toml", check_calibration=False)
     rows = [json.loads(line) for line in (take / INDEX).read_text().splitlines()]
     hw = np.array([(r["trigger"], r["frames"]["left"]["device_ts_ns"]) for r in rows if r["frames"]["left"]], dtype=np.float64)
@@ -47,19 +54,20 @@ def _truth_errors(take: Path) -> dict[str, tuple[int, float, int]]:
         if c.trigger != "free":
             continue
         offset_ns, drift = c.sim.get("clock_offset_ns", 0), c.sim.get("drift_ppm", 0.0)
-        wrong, worst, n = 0, 0.0, 0
+        wrong, worst, n = [], 0.0, 0
         for r in rows:
             f = r["frames"][c.name]
             if f is None:
                 continue
             start = (f["device_ts_ns"] - offset_ns) / (1 + drift * 1e-6)  # exposure start, simulated clock
-            pos = (start - at_zero) / ns_per_pulse
-            nearest = int(np.floor(pos + 0.5))
+            pos = (start - at_zero) / ns_per_pulse - r["trigger"]  # periods after the pulse of its set
             n += 1
-            if nearest != r["trigger"]:
-                wrong += 1
+            # Its set is the nearest pulse's; a frame exposed within BOUNDARY of half-way between two
+            # pulses may go to either, and its offset then says which (free cameras drift through it).
+            if abs(pos) > 0.5 + BOUNDARY:
+                wrong.append((r["trigger"], round(pos, 4), f["offset"]))
             else:
-                worst = max(worst, abs((pos - nearest) - f["offset"]))
+                worst = max(worst, abs(pos - f["offset"]))
         out[c.name] = (wrong, worst, n)
     return out
 
@@ -89,8 +97,8 @@ def test_align_gives_free_running_frames_their_pulse_and_offset(take):
         assert cam["rate_ppm"] is not None and abs(cam["rate_ppm"]) < 1000, cam  # two flashes: the clock's rate too
     errors = _truth_errors(take)
     for name, (wrong, worst, n) in errors.items():
-        print(f"{name}: {n} frames, {wrong} in the wrong set, offset error at most {worst:.4f} frame periods")
-        assert n > 100 and wrong == 0, errors
+        print(f"{name}: {n} frames, {len(wrong)} in the wrong set, offset error at most {worst:.4f} frame periods")
+        assert n > 100 and not wrong, errors
         assert worst < 0.1, errors
     backup = Path(report["backup"])
     assert backup.read_bytes() == before  # the original index, byte for byte
