@@ -81,6 +81,9 @@ def main() -> int:
             d = r["depth_scale"]
             print(f"{name}: stage-1 depth scale (median depth / truth) {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}, "
                   f"AbsRel once divided by it {100 * d['absrel_scale_free']:.2f} %")
+        if r.get("view_depth_absrel") is not None:
+            person = f" (person masks {100 * r['view_depth_absrel_person']:.2f} %)" if r.get("view_depth_absrel_person") is not None else ""
+            print(f"{name}: rendered depth AbsRel in the supervision cameras {100 * r['view_depth_absrel']:.2f} %{person}")
     print("per camera (trained): " + ", ".join(f"{c} {v['psnr']:.2f} dB" for c, v in t["cameras"].items()))
     return 0
 

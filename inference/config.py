@@ -136,10 +136,12 @@ class Stage1Config:
     scale_reference: str = "baseline"
     # After S and T: both point maps scaled by the factor (within 1 +- scale_search_range, from
     # scale_search candidates) at which the two sources re-project best onto each other
-    # (inference/model/scale_search.py; no weights). 0: off (models/candidates/README.md says why
-    # the shipped model does not use it yet); training stage 1 with it on is untried.
+    # (inference/model/scale_search.py; no weights). 0: off (the shipped model has it on: 21);
+    # training stage 1 with it on is untried.
     scale_search: int = 0
     scale_search_range: float = 0.2
+    # T scaled by each point's opacity (1 - 1/confidence) to this power; 0: T as learned.
+    translation_gate: float = 0.0
 
     def __post_init__(self) -> None:
         if self.affine not in ("learned", "bypass"):
@@ -150,6 +152,8 @@ class Stage1Config:
             raise InferenceError(f"stage1: scale_search must be 0 (off) or an integer >= 2, got {self.scale_search!r}")
         if not 0 < self.scale_search_range < 1:
             raise InferenceError(f"stage1: scale_search_range must be between 0 and 1, got {self.scale_search_range!r}")
+        if not (isinstance(self.translation_gate, (int, float)) and self.translation_gate >= 0):
+            raise InferenceError(f"stage1: translation_gate must be >= 0, got {self.translation_gate!r}")
 
 
 ZBUFFERS = ("occlusion", "reference")
@@ -169,6 +173,8 @@ class DepthInitConfig:
     depth_span: float = 3.0  # the bins cover the view's mean log depth +- this (20x nearer or farther)
     front_tolerance: float = 0.02  # "reference" only: softness of its z-buffer, relative depth
     fill_levels: int = 6  # push-pull levels that fill pixels no point reached
+    # A point's coverage is its stage-1 opacity raised to this power (0: every point covers fully).
+    opacity_power: float = 1.0
 
     def __post_init__(self) -> None:
         if self.zbuffer not in ZBUFFERS:
@@ -179,6 +185,8 @@ class DepthInitConfig:
             raise InferenceError("depth_init: depth_bin must be positive, and depth_span and occlusion_margin at least two bins")
         if self.occlusion_gain < 0:
             raise InferenceError(f"depth_init: occlusion_gain must be >= 0, got {self.occlusion_gain}")
+        if not (isinstance(self.opacity_power, (int, float)) and self.opacity_power >= 0):
+            raise InferenceError(f"depth_init: opacity_power must be >= 0, got {self.opacity_power!r}")
 
 
 @dataclass
@@ -278,7 +286,7 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 # candidates depth refinement searches (its 3-D convolutions slide along the candidates), and stage
 # 1's scale search. A run may start from weights trained with other values of these (fine-tuning to them).
 WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
-                               "stage1": {"scale_search", "scale_search_range"}}
+                               "stage1": {"scale_search", "scale_search_range", "translation_gate"}}
 
 
 def weight_differences(a: "ModelConfig", b: "ModelConfig") -> list[str]:

@@ -59,6 +59,9 @@ def splat_depth(
     uv, z = project(transform_points(to_target, points), target_K)  # (B, 2, N), (B, 1, N)
     u, v, z = uv[:, 0], uv[:, 1], z[:, 0]
     alpha = opacity[:, 0]
+    if cfg.opacity_power != 1.0:
+        # opacity ** p; p = 0: every point that has any opacity covers fully.
+        alpha = alpha.clamp(min=0.0) ** cfg.opacity_power if cfg.opacity_power > 0 else (alpha > 0).to(alpha.dtype)
     u0 = torch.round(u)
     v0 = torch.round(v)
     rho2 = (radius + 0.5) ** 2

@@ -209,6 +209,13 @@ class AffineTransform(nn.Module):
         t = self.translation(pts * s2, feats, other_feats, to_other, other_K, torch.cat([baseline, baseline], dim=0))
         t = F.interpolate(t, size=(ch, cw), mode="bilinear", align_corners=False)
         t_l, t_r = t[:b], t[b:]
+        if self.cfg.translation_gate:
+            # T scaled by each point's opacity to the power gate: the backbone's unsure points (on
+            # the held-out takes, people: opacity 0.1 against 0.8) keep their place along their
+            # ray instead of being moved by a translation field learned mostly from the rest.
+            p = self.cfg.translation_gate
+            t_l = t_l * (1.0 - 1.0 / pm.conf_left.clamp(min=1.0)) ** p
+            t_r = t_r * (1.0 - 1.0 / pm.conf_right.clamp(min=1.0)) ** p
         sv = s.reshape(b, 3, 1, 1)
         points_left, points_right = sv * pm.points_left + t_l, sv * pm.points_right + t_r
         if self.cfg.scale_search:

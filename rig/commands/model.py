@@ -75,8 +75,8 @@ def register(subparsers) -> None:
 
     v = sub.add_parser("eval", help="PSNR/SSIM, depth error and scale jitter on sequences with supervision cameras",
                        description="Render every supervision camera of every (or every k-th) frame set from the two sources and report "
-                                   "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth, split into scale and shape (simulator "
-                                   "takes) and the frame-to-frame jitter of stage 1's scaling S; with the oracle pipeline (same stage-2 "
+                                   "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth, split into scale and shape, and "
+                                   "the AbsRel of the depth rendered in each supervision camera (simulator takes), and the frame-to-frame jitter of stage 1's scaling S; with the oracle pipeline (same stage-2 "
                                    "weights) and the nearer source image as references. LPIPS is not reported (it needs pretrained weights).")
     v.add_argument("--model", metavar="MODEL",
                    help="a checkpoint (.pt, e.g. from rig train) or an ONNX export of one (its recorded checkpoint is used)")
@@ -451,6 +451,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         d = result["depth_scale"]
         print(f"  scale (median depth / truth per source and set): {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}; "
               f"AbsRel once divided by it: {100 * d['absrel_scale_free']:.2f} %")
+    if result.get("view_depth_absrel") is not None:
+        person = f" (person masks {100 * result['view_depth_absrel_person']:.2f} %)" if result.get("view_depth_absrel_person") is not None else ""
+        print(f"rendered depth AbsRel in the supervision cameras: {100 * result['view_depth_absrel']:.2f} %{person}")
     if result["scale_jitter"] is not None:
         j = result["scale_jitter"]
         print(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")

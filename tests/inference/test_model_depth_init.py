@@ -119,10 +119,26 @@ def test_a_faint_splat_occludes_only_as_much_as_it_covers():
         assert centre >= lowest - 1e-3 and (opacity < 1 or centre <= 2.5), (opacity, centre)
 
 
+def test_opacity_power_zero_lets_an_unsure_nearer_surface_occlude():
+    """Stage 1's opacities on people were 0.1 against 0.8 behind them: by opacity the wall showed
+    through the people in every target view. opacity_power 0 counts every point as covering fully."""
+    # The near surface as sparse as stage 1's points are in a target view (one per 2x2 pixels).
+    near, far = plane_points(2.0, density=1).reshape(1, 3, 48, 64)[:, :, ::2, ::2].reshape(1, 3, -1), plane_points(4.0)
+    near = near[:, :, (near[0, 0] / near[0, 2]) < 0]  # the left half
+    pts = torch.cat([far, near], dim=2)
+    op = torch.cat([torch.full((1, 1, far.shape[2]), 0.8), torch.full((1, 1, near.shape[2]), 0.1)], dim=2)
+    left = {}
+    for power in (1.0, 0.0):
+        raw, _ = splat_depth(pts, op, EYE, K, SIZE, DepthInitConfig(opacity_power=power))
+        left[power] = raw[0, 0, 4:-4, 4:24]  # inside the near half, away from its edges
+    assert float(left[1.0].mean()) > 3.5  # the far wall shows through (measured 3.97 m)
+    assert float((left[0.0] - 2.0).abs().max()) < 0.05  # the near surface (measured within 0.017 m)
+
+
 def test_the_configuration_is_checked():
     from inference.errors import InferenceError
 
-    for bad in ({"zbuffer": "hard"}, {"radius": -1}, {"occlusion_margin": 0.1}, {"depth_bin": 0.0}):
+    for bad in ({"zbuffer": "hard"}, {"radius": -1}, {"occlusion_margin": 0.1}, {"depth_bin": 0.0}, {"opacity_power": -1.0}):
         with pytest.raises(InferenceError, match="depth_init"):
             DepthInitConfig(**bad)
 

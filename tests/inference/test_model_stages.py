@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from plane_scene import camera, view_of_plane
 
@@ -106,6 +107,29 @@ def test_translation_reads_the_other_view():
     pm.tokens_right = pm.tokens_right.flip(1)
     b = layer(pm, t(left.K), t(right.K), r2l).translation_left
     assert (a - b).abs().max() > 1e-4
+
+
+def test_the_translation_gate_scales_t_by_each_points_opacity():
+    """translation_gate p: T times opacity ** p, so unsure points keep their place along their ray."""
+    pm, left, right, r2l = oracle_maps("canonical")
+    torch.manual_seed(0)
+    pm.conf_left = 1.0 + 9.0 * torch.rand_like(pm.conf_left)  # opacities 0 to 0.9
+    outs = {}
+    for gate in (0.0, 1.0, 2.0):
+        torch.manual_seed(1)
+        layer = AffineTransform(Stage1Config(iterations=2, translation_gate=gate), pm.tokens_left.shape[-1], COARSE)
+        torch.nn.init.normal_(layer.translation.delta[-1].weight, std=0.2)
+        with torch.no_grad():
+            outs[gate] = layer(pm, t(left.K), t(right.K), r2l)
+    opacity = 1.0 - 1.0 / pm.conf_left
+    t0 = outs[0.0].translation_left
+    assert t0.abs().max() > 1e-3
+    for gate in (1.0, 2.0):
+        assert torch.allclose(outs[gate].translation_left, t0 * opacity ** gate, atol=1e-6)
+        s = outs[gate].scale.reshape(1, 3, 1, 1)
+        assert torch.allclose(outs[gate].points_left, s * pm.points_left + t0 * opacity ** gate, atol=1e-5)
+    with pytest.raises(Exception, match="translation_gate"):
+        Stage1Config(translation_gate=-1.0)
 
 
 def test_translation_and_scale_stay_bounded_whatever_the_weights():
