@@ -37,7 +37,7 @@ def main() -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
 
-    from inference.evaluate.model_eval import evaluate
+    from inference.evaluate.model_eval import depth_lines, evaluate
     from inference.model.checkpoint import load_checkpoint
     from inference.model.pipeline import build_model
     from rig.storage.dataset import TrainingSet, expand_sequences
@@ -74,16 +74,8 @@ def main() -> int:
         f = lambda v, fmt: (fmt % v) if v is not None else "-"
         print(f"{name:28s} {f(o['psnr'], '%7.2f'):>7s} {f(o['ssim'], '%6.3f'):>6s} {f(o['psnr_mask'], '%10.2f'):>10s} {f(o['ssim_mask'], '%10.3f'):>10s}")
     for name, r in (("trained", t), ("untrained", u)):
-        j = r["scale_jitter"]
-        person = f" (person masks {100 * r['depth_absrel_person']:.2f} %)" if r.get("depth_absrel_person") is not None else ""
-        print(f"{name}: stage-1 depth AbsRel {100 * r['depth_absrel']:.2f} %{person}, scale jitter mean {100 * j['mean']:.3f} % max {100 * j['max']:.3f} %")
-        if r.get("depth_scale"):
-            d = r["depth_scale"]
-            print(f"{name}: stage-1 depth scale (median depth / truth) {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}, "
-                  f"AbsRel once divided by it {100 * d['absrel_scale_free']:.2f} %")
-        if r.get("view_depth_absrel") is not None:
-            person = f" (person masks {100 * r['view_depth_absrel_person']:.2f} %)" if r.get("view_depth_absrel_person") is not None else ""
-            print(f"{name}: rendered depth AbsRel in the supervision cameras {100 * r['view_depth_absrel']:.2f} %{person}")
+        for line in depth_lines(r):
+            print(f"{name}: {line.strip()}")
     print("per camera (trained): " + ", ".join(f"{c} {v['psnr']:.2f} dB" for c, v in t["cameras"].items()))
     return 0
 

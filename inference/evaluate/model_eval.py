@@ -212,3 +212,24 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         "scale_jitter": {"mean": round(float(np.mean(jitter)), 6), "max": round(float(np.max(jitter)), 6), "pairs": len(jitter)} if jitter else None,
         "references": out,
     }
+
+
+def depth_lines(result: dict) -> list[str]:
+    """The depth and scale figures of an `evaluate` result as text lines (rig model eval and
+    benchmarks/model_eval.py print them)."""
+    lines = []
+    if result.get("depth_absrel") is not None:
+        lines.append(f"stage-1 depth AbsRel (pixels both sources see): {100 * result['depth_absrel']:.2f} %")
+    if result.get("depth_absrel_person") is not None:
+        lines.append(f"  on the person masks: {100 * result['depth_absrel_person']:.2f} %")
+    if result.get("depth_scale") is not None:
+        d = result["depth_scale"]
+        lines.append(f"  scale (median depth / truth per source and set): {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}; "
+                     f"AbsRel once divided by it: {100 * d['absrel_scale_free']:.2f} %")
+    if result.get("view_depth_absrel") is not None:
+        person = f" (person masks {100 * result['view_depth_absrel_person']:.2f} %)" if result.get("view_depth_absrel_person") is not None else ""
+        lines.append(f"rendered depth AbsRel in the supervision cameras: {100 * result['view_depth_absrel']:.2f} %{person}")
+    if result.get("scale_jitter") is not None:
+        j = result["scale_jitter"]
+        lines.append(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")
+    return lines

@@ -49,11 +49,10 @@ def _ssim_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     training loss's SSIM (inference/train/losses.py, 11x11 Gaussian): the model does not import the
     trainer, and a 3x3 box over 21 candidates x 2 views is the cheaper, local one monocular-depth
     photometric errors use."""
-    pool = _box3
-    mu_a, mu_b = pool(a), pool(b)
-    var_a = pool(a * a) - mu_a * mu_a
-    var_b = pool(b * b) - mu_b * mu_b
-    cov = pool(a * b) - mu_a * mu_b
+    mu_a, mu_b = _box3(a), _box3(b)
+    var_a = _box3(a * a) - mu_a * mu_a
+    var_b = _box3(b * b) - mu_b * mu_b
+    cov = _box3(a * b) - mu_a * mu_b
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     ssim = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a * mu_a + mu_b * mu_b + c1) * (var_a + var_b + c2))
     return ((1.0 - ssim) / 2.0).clamp(0.0, 1.0).mean(dim=1, keepdim=True)

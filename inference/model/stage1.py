@@ -24,7 +24,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from inference.config import Stage1Config
-from inference.model.backbone import PointMaps
+from inference.model.backbone import PointMaps, confidence_to_opacity
 from inference.model.scale_search import ScaleSearch, rescale
 from inference.model.geometry import (
     in_image,
@@ -214,8 +214,8 @@ class AffineTransform(nn.Module):
             # the held-out takes, people: opacity 0.1 against 0.8) keep their place along their
             # ray instead of being moved by a translation field learned mostly from the rest.
             p = self.cfg.translation_gate
-            t_l = t_l * (1.0 - 1.0 / pm.conf_left.clamp(min=1.0)) ** p
-            t_r = t_r * (1.0 - 1.0 / pm.conf_right.clamp(min=1.0)) ** p
+            t_l = t_l * confidence_to_opacity(pm.conf_left) ** p
+            t_r = t_r * confidence_to_opacity(pm.conf_right) ** p
         sv = s.reshape(b, 3, 1, 1)
         points_left, points_right = sv * pm.points_left + t_l, sv * pm.points_right + t_r
         if self.cfg.scale_search:

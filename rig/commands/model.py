@@ -402,7 +402,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise ConfigError(f"{model_path}: no such model")
     sequences = expand_sequences(args.sequence)
 
-    from inference.evaluate.model_eval import evaluate
+    from inference.evaluate.model_eval import depth_lines, evaluate
     from inference.model.checkpoint import build_with_weights, load_checkpoint, model_from_record
 
     if model_path is None:
@@ -443,20 +443,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         fmt = lambda v, f: (f % v) if v is not None else "-"
         print(f"{name:16s} {fmt(o.get('psnr'), '%7.2f'):>7s} {fmt(o.get('ssim'), '%6.3f'):>6s} "
               f"{fmt(o.get('psnr_mask'), '%10.2f'):>10s} {fmt(o.get('ssim_mask'), '%10.3f'):>10s}")
-    if result["depth_absrel"] is not None:
-        print(f"stage-1 depth AbsRel (pixels both sources see): {100 * result['depth_absrel']:.2f} %")
-    if result.get("depth_absrel_person") is not None:
-        print(f"  on the person masks: {100 * result['depth_absrel_person']:.2f} %")
-    if result.get("depth_scale") is not None:
-        d = result["depth_scale"]
-        print(f"  scale (median depth / truth per source and set): {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}; "
-              f"AbsRel once divided by it: {100 * d['absrel_scale_free']:.2f} %")
-    if result.get("view_depth_absrel") is not None:
-        person = f" (person masks {100 * result['view_depth_absrel_person']:.2f} %)" if result.get("view_depth_absrel_person") is not None else ""
-        print(f"rendered depth AbsRel in the supervision cameras: {100 * result['view_depth_absrel']:.2f} %{person}")
-    if result["scale_jitter"] is not None:
-        j = result["scale_jitter"]
-        print(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")
+    for line in depth_lines(result):
+        print(line)
     return 0
 
 
