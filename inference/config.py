@@ -86,6 +86,11 @@ class BackboneConfig:
     stereo_near: float = 0.5  # nearest plane, in baselines (the mean of the planes' inverse depths, an untrained
     # model's depth, is then about one baseline: the centre of an arc rig)
     stereo_far: float = 10.0  # farthest plane, in baselines
+    # A second, local sweep at the coarse size around the volume's depth (CasMVSNet's cascade): this
+    # many depth hypotheses (0: none, as in models saved before it), spread over +-stereo_cascade_range
+    # in log depth. The volume is matched at 1/4 of the coarse size, where a person is a few cells wide.
+    stereo_cascade: int = 0
+    stereo_cascade_range: float = 0.35
     # mast3r: the public MASt3R checkpoint's network (inference.model.mast3r); every width is the
     # checkpoint's, only the depths may be reduced (tests, quick CPU runs). The weights' file says
     # its own depths (its recorded architecture), and loading it sets these.
@@ -110,6 +115,10 @@ class BackboneConfig:
                 raise InferenceError(f"backbone: need 0 < stereo_near < stereo_far, got {self.stereo_near}, {self.stereo_far}")
             if self.stereo_depths < 2 or self.patch % 4:
                 raise InferenceError("backbone: stereo needs at least 2 depths and a patch that is a multiple of 4")
+            if not isinstance(self.stereo_cascade, int) or isinstance(self.stereo_cascade, bool) or self.stereo_cascade < 0 or self.stereo_cascade == 1:
+                raise InferenceError(f"backbone: stereo_cascade must be 0 (off) or an integer >= 2, got {self.stereo_cascade!r}")
+            if not 0 < self.stereo_cascade_range < 2:
+                raise InferenceError(f"backbone: stereo_cascade_range must lie in (0, 2), got {self.stereo_cascade_range!r}")
         if self.oracle_scale not in ("metric", "canonical"):
             raise InferenceError(f"backbone: oracle_scale must be metric or canonical, got '{self.oracle_scale}'")
 
@@ -286,7 +295,12 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 # candidates depth refinement searches (its 3-D convolutions slide along the candidates), and stage
 # 1's scale search. A run may start from weights trained with other values of these (fine-tuning to them).
 WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
-                               "stage1": {"scale_search", "scale_search_range", "translation_gate"}}
+                               "stage1": {"scale_search", "scale_search_range", "translation_gate"},
+                               "backbone": {"stereo_cascade_range"}}
+
+# Weight-shaping keys a run may turn on over weights trained without them: the modules they add
+# start at zero and compute nothing until trained (section.key -> their parameters' prefix).
+GROWN_FROM_ZERO: dict[str, str] = {"backbone.stereo_cascade": "point_init.cascade."}
 
 
 def weight_differences(a: "ModelConfig", b: "ModelConfig") -> list[str]:

@@ -12,7 +12,11 @@ For each view i (left and right, batched) and its partner j:
   grid_sample, the D hypotheses folded into the batch);
 - group-wise correlation, a small 3-D convolution over (depth, y, x) and a 2-D refinement that
   sees i's features give D logits per pixel; the soft-argmin over inverse depth gives the depth;
-- the confidence (DUSt3R convention 1 + exp(x)) comes from the peak probability and the features.
+- the confidence (DUSt3R convention 1 + exp(x)) comes from the peak probability and the features;
+- optionally (`stereo_cascade` hypotheses) a second sweep at the coarse size itself, around the
+  volume's depth (`CoarseCascade`): the volume's cells are 4 coarse pixels wide, so thin and small
+  things (a person's limbs, a box) take the depth of what lies behind them, and its depth is
+  bilinearly upsampled across every edge.
 
 Point maps are returned in the left camera's frame in units of the baseline (scale-free, as
 MASt3R's are): stage 1's scaling S (initialised to the baseline) makes them metric. In training the
@@ -68,6 +72,7 @@ class StereoBackbone(Backbone):
         inv = torch.linspace(1.0 / cfg.stereo_near, 1.0 / cfg.stereo_far, d)
         self.register_buffer("inverse_depths", inv, persistent=False)
         self.token_dim = c + d
+        self.cascade = CoarseCascade(cfg.stereo_cascade, cfg.stereo_cascade_range, c) if cfg.stereo_cascade else None
 
     def _sweep(self, feats, other_feats, K, other_K, to_other):
         """Logits (N, D, h, w) of the D depth planes of each reference view. Depths in baseline units;
@@ -110,8 +115,11 @@ class StereoBackbone(Backbone):
         peak = prob.max(dim=1, keepdim=True).values
         conf_logit = self.confidence(torch.cat([feats, peak, inv], dim=1))
         inv_c = F.interpolate(inv, size=(ch, cw), mode="bilinear", align_corners=False)
-        conf = 1.0 + torch.exp(F.interpolate(conf_logit, size=(ch, cw), mode="bilinear", align_corners=False).clamp(max=20.0))
+        conf_logit = F.interpolate(conf_logit, size=(ch, cw), mode="bilinear", align_corners=False)
         k_coarse = torch.cat([left_K, right_K], dim=0)
+        if self.cascade is not None:
+            inv_c, conf_logit = self.cascade(torch.cat([left, right], dim=0), feats, inv_c, conf_logit, k_coarse, torch.cat([l2r, r2l], dim=0))
+        conf = 1.0 + torch.exp(conf_logit.clamp(max=20.0))
         pts = pixel_rays(k_coarse, cw, ch) / inv_c.clamp(min=1e-6)
         pts_l = pts[:b]
         pts_r = transform_points(r2l, pts[b:])
@@ -125,3 +133,59 @@ class StereoBackbone(Backbone):
             right_in_left = transform_points(r2l, plane_pts[b:].permute(0, 2, 1, 3, 4)).permute(0, 2, 1, 3, 4)
             planes = PlaneVolume(plane_pts[:b], right_in_left, prob[:b], prob[b:])
         return PointMaps(pts_l, pts_r, conf[:b], conf[b:], tokens[:b], tokens[b:], self.grid, planes=planes)
+
+
+class CoarseCascade(nn.Module):
+    """The second sweep of a cascade (CasMVSNet) at the coarse size: K hypotheses around the
+    volume's depth, inverse depth times exp(-delta_k) for K offsets delta_k evenly over +-range (log
+    depth). Features of the image at full coarse resolution (with the volume's features upsampled)
+    of the reference view are correlated with the other view's sampled at each hypothesis (4-D
+    grid_sample, the hypotheses folded into the batch), a 3-D convolution over (hypothesis, y, x)
+    and a 2-D one that sees the reference features give K logits, and the depth moves by the
+    softmax-weighted offset. A residual confidence logit comes from the same features and the peak.
+    The last layers start at zero: uniform weights over symmetric offsets move nothing, so a model
+    trained without the cascade starts from what it computed."""
+
+    def __init__(self, hypotheses: int, log_range: float, volume_features: int, features: int = 16, groups: int = 4):
+        super().__init__()
+        self.groups = groups
+        self.image = nn.Sequential(_conv(3, 16), _conv(16, 16))
+        self.features = nn.Sequential(_conv(16 + volume_features, 32), nn.Conv2d(32, features, 1))
+        self.regularise = nn.Sequential(nn.Conv3d(groups + 1, 8, 3, padding=1), nn.ReLU(), nn.Conv3d(8, 1, 3, padding=1))
+        self.refine = nn.Sequential(nn.Conv2d(hypotheses + features, 32, 3, padding=1), nn.ReLU(), nn.Conv2d(32, hypotheses, 3, padding=1))
+        self.confidence = nn.Sequential(nn.Conv2d(features + 2, 16, 3, padding=1), nn.ReLU(), nn.Conv2d(16, 1, 3, padding=1))
+        for last in (self.regularise[-1], self.refine[-1], self.confidence[-1]):
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+        self.register_buffer("offsets", torch.linspace(-log_range, log_range, hypotheses), persistent=False)
+
+    def forward(self, images, volume_feats, inv, conf_logit, K, to_other):
+        """Both sources batched, left ones first: images (2B, 3, H, W) in [0, 1], volume_feats
+        (2B, C, h, w), inv and conf_logit (2B, 1, H, W) at the coarse size, K (2B, 3, 3) coarse
+        intrinsics, to_other (2B, 4, 4) each view's points into its partner (baseline units).
+        Returns the refined inverse depth and confidence logit."""
+        n, _, hgt, wid = images.shape
+        b = n // 2
+        k = self.offsets.shape[0]
+        up = F.interpolate(volume_feats, size=(hgt, wid), mode="bilinear", align_corners=False)
+        ref = self.features(torch.cat([self.image(images * 2.0 - 1.0), up], dim=1))
+        other = torch.cat([ref[b:], ref[:b]], dim=0)
+        other_K = torch.cat([K[b:], K[:b]], dim=0)
+        c = ref.shape[1]
+        depth = torch.exp(self.offsets).reshape(1, k, 1, 1) / inv.clamp(min=1e-6)  # (N, K, H, W)
+        rays = pixel_rays(K, wid, hgt)  # (N, 3, H, W)
+        pts = (rays[:, :, None] * depth[:, None]).reshape(n, 3, k, hgt * wid)
+        uv, z = project(transform_points(to_other, pts), other_K)  # (N, 2, K, HW)
+        vis = in_image(uv, z, wid, hgt).reshape(n, 1, k, hgt, wid)
+        grid = normalise_pixels(uv.reshape(n, 2, k * hgt, wid), wid, hgt).reshape(n, k, hgt, wid, 2).reshape(n * k, hgt, wid, 2)
+        src = other[:, None].expand(n, k, c, hgt, wid).reshape(n * k, c, hgt, wid)
+        warped = F.grid_sample(src, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        warped = warped.reshape(n, k, self.groups, c // self.groups, hgt, wid)
+        corr = (warped * ref.reshape(n, 1, self.groups, c // self.groups, hgt, wid)).mean(dim=3).permute(0, 2, 1, 3, 4)
+        logits = self.regularise(torch.cat([corr, vis], dim=1))[:, 0]  # (N, K, H, W)
+        logits = logits + self.refine(torch.cat([logits, ref], dim=1))
+        prob = torch.softmax(logits, dim=1)
+        shift = (prob * self.offsets.reshape(1, k, 1, 1)).sum(dim=1, keepdim=True)
+        peak = prob.max(dim=1, keepdim=True).values
+        conf_logit = conf_logit + self.confidence(torch.cat([ref, peak, shift], dim=1))
+        return inv * torch.exp(-shift), conf_logit

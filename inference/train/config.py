@@ -92,6 +92,14 @@ class TrainConfig:
     # A pretrained backbone (mast3r, PRETRAINED_BACKBONES) stays frozen in stage 1 unless this is set
     # (fine-tuning); backbones trained from scratch (stereo, tiny) always train.
     train_backbone: bool = False
+    # Not in the paper: stage 2 also trains stage 1 (the backbone, as train_backbone allows, and the
+    # affine transform) through the whole pipeline, at this fraction of stage 2's learning rate
+    # (0: stage 1 frozen, the paper's schedule). Stage 1's own losses never see what its points do
+    # to a rendered view: its rendering loss splats them alone, where an unsure point (low opacity)
+    # costs little, while at run time depth initialisation lets the wall behind an unsure person
+    # show through it. The view's photometric loss reaches the points and their opacity through
+    # depth initialisation's soft z-buffer.
+    stage2_trains_stage1: float = 0.0
 
     def check(self) -> None:
         self.stage1.check("stage1")
@@ -104,6 +112,8 @@ class TrainConfig:
             raise InferenceError(f"render_scales must be integers >= 1, got {self.render_scales!r}")
         if not isinstance(self.train_backbone, bool):
             raise InferenceError(f"train_backbone must be true or false, got {self.train_backbone!r}")
+        if not (isinstance(self.stage2_trains_stage1, (int, float)) and self.stage2_trains_stage1 >= 0):
+            raise InferenceError(f"stage2_trains_stage1 must be a number >= 0, got {self.stage2_trains_stage1!r}")
         if not (isinstance(self.mvs_depth, (int, float)) and self.mvs_depth >= 0):
             raise InferenceError(f"mvs_depth must be a number >= 0, got {self.mvs_depth!r}")
         try:

@@ -33,7 +33,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from common.files import atomic_path, atomic_write_json
 from inference.errors import InferenceError, OutputError
-from inference.config import ModelConfig, weight_differences
+from inference.config import GROWN_FROM_ZERO, ModelConfig, weight_differences
 from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
 from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
@@ -128,9 +128,14 @@ class Trainer:
         except (InferenceError, TypeError, ValueError, AttributeError):
             saved = None
         # Settings no weight depends on (config.WEIGHT_FREE) may differ: the run fine-tunes to its own.
-        if saved is None or weight_differences(saved, self.cfg.model):
+        # A module the checkpoint lacks (config.GROWN_FROM_ZERO, e.g. the stereo cascade) starts at zero.
+        differs = weight_differences(saved, self.cfg.model) if saved is not None else ["model"]
+        grown = [GROWN_FROM_ZERO[d] for d in differs if d in GROWN_FROM_ZERO and not _config_value(saved, d)]
+        if saved is None or len(grown) != len(differs):
             raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (--size, --backbone, --config)")
-        self.model.load_state_dict(data["state_dict"])
+        missing, unexpected = self.model.load_state_dict(data["state_dict"], strict=not grown)
+        if unexpected or any(not k.startswith(tuple(grown)) for k in missing):
+            raise InferenceError(f"{path}: the checkpoint's weights do not fit this run's model")
 
     def _save(self, path: Path, optimizer: Optional[torch.optim.Optimizer], final: bool = False) -> None:
         if self.rank != 0:
@@ -184,7 +189,8 @@ class Trainer:
     def _batch(self, source: FrameSource, items: list[tuple[int, list[str]]], stage: int) -> Batch:
         s = self.cfg.model.sizes
         lefts, rights, targets, fines, depths = [], [], [], [], []
-        want_depth = stage == 1 and self.cfg.mvs_depth > 0 and source is self.data
+        trains_stage1 = stage == 1 or self.cfg.stage2_trains_stage1 > 0
+        want_depth = trains_stage1 and self.cfg.mvs_depth > 0 and source is self.data
         for index, sup in items:
             fs = source.frame_set(index)
             lefts.append(self.pre.views(fs, [source.left], s.fine))
@@ -233,24 +239,30 @@ class Trainer:
         return sched.lr * (sched.final_lr + (1 - sched.final_lr) * 0.5 * (1 + math.cos(math.pi * min(1.0, t))))
 
     def _stage_module(self, stage: int):
+        """The loss module of `stage` and its optimiser's parameter groups, each with its `lr_factor`."""
         m = self.model
-        first = [m.point_init, m.affine_transform]
+        first = [m.point_init, m.affine_transform] if self.cfg.backbone_trainable else [m.affine_transform]
         for p in m.parameters():
             p.requires_grad_(False)
         if stage == 1:
             # A pretrained backbone (MASt3R) stays frozen unless train_backbone (--train-backbone).
-            trainable = first if self.cfg.backbone_trainable else [m.affine_transform]
+            groups = [(first, 1.0)]
         else:
-            trainable = [mod for mod in m.children() if all(mod is not f for f in first)]
-        for mod in trainable:
-            for p in mod.parameters():
+            rest = [mod for mod in m.children() if all(mod is not f for f in (m.point_init, m.affine_transform))]
+            groups = [(rest, 1.0)]
+            if self.cfg.stage2_trains_stage1 > 0:
+                groups.append((first, float(self.cfg.stage2_trains_stage1)))
+        param_groups = []
+        for mods, factor in groups:
+            params = [p for mod in mods for p in mod.parameters()]
+            for p in params:
                 p.requires_grad_(True)
+            param_groups.append({"params": params, "lr_factor": factor})
         w = self.cfg.loss
-        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth) if stage == 1 else Stage2Loss(m, w)
-        params = [p for p in m.parameters() if p.requires_grad]
+        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth) if stage == 1 else Stage2Loss(m, w, self.cfg.mvs_depth if self.cfg.stage2_trains_stage1 > 0 else 0.0)
         if self.world > 1:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
-        return module, params
+        return module, param_groups
 
     def run(self, stop_after: Optional[int] = None) -> dict:
         """Train to the end of the schedule, or `stop_after` more steps (then checkpoint and return)."""
@@ -262,15 +274,16 @@ class Trainer:
         for stage, sched, offset in ((1, cfg.stage1, 0), (2, cfg.stage2, cfg.stage1.steps)):
             if self.step >= offset + sched.steps or sched.steps == 0:
                 continue
-            module, params = self._stage_module(stage)
-            optimizer = torch.optim.AdamW(params, lr=sched.lr, weight_decay=1e-4)
+            module, groups = self._stage_module(stage)
+            params = [p for g in groups for p in g["params"]]
+            optimizer = torch.optim.AdamW(groups, lr=sched.lr, weight_decay=1e-4)
             if self._optim_state is not None and self.step > offset:
                 optimizer.load_state_dict(self._optim_state)
             self._optim_state = None
             while self.step < min(offset + sched.steps, stop_at):
                 k = self.step - offset
                 for g in optimizer.param_groups:
-                    g["lr"] = self._lr(sched, k)
+                    g["lr"] = self._lr(sched, k) * g.get("lr_factor", 1.0)
                 items = self._draw(stage, k, sched)[self.rank::self.world]
                 if stage == 1:
                     (module.module if self.world > 1 else module).gamma = cfg.gamma_at(k)
@@ -368,3 +381,8 @@ def _mean_over_ranks(metrics: dict, world: int) -> dict:
 def _check_fresh(out: Path) -> None:
     if (out / CHECKPOINT).exists() or (out / METRICS).exists():
         raise InferenceError(f"{out}: already holds a training run; pass --resume to continue it, or choose a new folder")
+
+
+def _config_value(cfg: ModelConfig, key: str):
+    section, _, name = key.partition(".")
+    return getattr(getattr(cfg, section), name)

@@ -68,9 +68,11 @@ def build_config(args: argparse.Namespace):
             raise ConfigError(f"{args.out / 'train.json'}: not a readable training record; pass --config") from None
     else:
         cfg = TrainConfig()
-    if args.size or args.backbone:
+    if args.backbone:
         sizes = Sizes.preset(args.size) if args.size else cfg.model.sizes
-        cfg.model = ModelConfig.for_backbone(args.backbone or cfg.model.backbone.kind, sizes)
+        cfg.model = ModelConfig.for_backbone(args.backbone, sizes)
+    elif args.size:
+        cfg.model.sizes = Sizes.preset(args.size)  # the rest of a --config file's model section holds
     for flag, (section, key) in {"stage1_steps": ("stage1", "steps"), "stage2_steps": ("stage2", "steps")}.items():
         if getattr(args, flag) is not None:
             setattr(getattr(cfg, section), key, getattr(args, flag))

@@ -74,3 +74,90 @@ def test_depth_follows_the_matching_features():
         a = net(left, right, K, K, r2l).points_left
         b = net(left, right.flip(-1), K, K, r2l).points_left
     assert (a - b).abs().max() > 1e-5  # untrained: small but not zero (measured 3e-4); ignoring the right view gives 0
+
+
+def facing(baseline: float):
+    """rig(), each camera turned towards the other (rig()'s turn away: near its cameras they share no view)."""
+    K, r2l = rig(baseline)
+    r2l[0, :3, :3] = r2l[0, :3, :3].T.clone()
+    return K, r2l
+
+
+def cascaded(hypotheses: int = 8, log_range: float = 0.35, live: bool = True) -> StereoBackbone:
+    """The backbone() with a cascade; `live`: its zero-initialised last layers drawn at random, so it moves depth."""
+    torch.manual_seed(0)
+    net = StereoBackbone(BackboneConfig(kind="stereo", stereo_cascade=hypotheses, stereo_cascade_range=log_range), (W, H))
+    net.load_state_dict(backbone().state_dict(), strict=False)
+    if live:
+        g = torch.Generator().manual_seed(3)
+        with torch.no_grad():
+            for last in (net.cascade.regularise[-1], net.cascade.refine[-1], net.cascade.confidence[-1]):
+                last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 0.5)
+    return net.eval()
+
+
+def test_a_cascade_added_to_trained_weights_starts_computing_what_they_did():
+    K, r2l = facing(1.0)
+    left, right = images()
+    with torch.no_grad():
+        a = backbone()(left, right, K, K, r2l)
+        b = cascaded(live=False)(left, right, K, K, r2l)
+    for name in ("points_left", "points_right", "conf_left", "conf_right"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_the_cascade_moves_depth_along_the_rays_within_its_range():
+    K, r2l = facing(1.0)
+    left, right = images()
+    with torch.no_grad():
+        a = backbone()(left, right, K, K, r2l)
+        b = cascaded(log_range=0.35)(left, right, K, K, r2l)
+    ratio = b.points_left[:, 2] / a.points_left[:, 2]
+    assert ratio.min() >= torch.exp(torch.tensor(-0.35)) - 1e-5 and ratio.max() <= torch.exp(torch.tensor(0.35)) + 1e-5
+    assert (ratio - 1).abs().max() > 1e-3  # it moved
+    uv_a, _ = project(a.points_left, K)
+    uv_b, _ = project(b.points_left, K)
+    assert (uv_a - uv_b).abs().max() < 1e-3  # on the same rays
+    assert not torch.equal(a.conf_left, b.conf_left)
+
+
+def test_the_cascade_follows_the_other_view():
+    """Its sweep matches the views: what the right camera sees changes its depth shift."""
+    net = cascaded()
+    base = backbone()
+    K, r2l = facing(1.0)
+    left, right = images()
+    with torch.no_grad():
+        shift = lambda r: net(left, r, K, K, r2l).points_left[:, 2] / base(left, r, K, K, r2l).points_left[:, 2]  # noqa: E731
+        a, b = shift(right), shift(right.flip(-1))
+    assert (a - b).abs().max() > 1e-3
+
+
+def test_the_cascade_exports_to_onnx_runtime_within_float_rounding():
+    import numpy as np
+    import onnxruntime as ort
+
+    from inference.export import _quiet
+
+    net = cascaded()
+    K, r2l = facing(1.0)
+    left, right = images()
+
+    class Depth(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.net = net
+
+        def forward(self, left, right, K, r2l):
+            pm = self.net(left, right, K, K, r2l)
+            return pm.points_left, pm.conf_left
+
+    args = (left, right, K, r2l)
+    with torch.no_grad(), _quiet():
+        program = torch.onnx.export(Depth().eval(), args, dynamo=True, opset_version=18)
+    sess = ort.InferenceSession(program.model_proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {i.name: a.numpy() for i, a in zip(sess.get_inputs(), args)})
+    with torch.no_grad():
+        ref = Depth().eval()(*args)
+    assert np.abs(got[0] - ref[0].numpy()).max() < 1e-4
+    assert np.abs(got[1] - ref[1].numpy()).max() / ref[1].numpy().max() < 1e-4

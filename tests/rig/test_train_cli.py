@@ -185,6 +185,54 @@ def test_a_checkpoint_of_another_configuration_is_refused_and_kept(takes, light,
     assert r.returncode == 0, r.stderr
 
 
+def test_stage_2_trains_stage_1_through_the_view_only_when_asked(takes, whole, tmp_path):
+    """TrainConfig.stage2_trains_stage1: the view's loss also steps the backbone and the affine
+    transform (at that fraction of stage 2's rate); at 0 (the paper's schedule) they stay frozen."""
+    start = whole[0] / "model.pt"
+    init = torch.load(start, weights_only=True)["state_dict"]
+    moved = {}
+    for factor in (0.0, 0.5):
+        cfg = tmp_path / f"e2e-{factor}.json"
+        cfg.write_text(json.dumps({**LIGHT, "stage2_trains_stage1": factor}))
+        out = tmp_path / f"run-{factor}"
+        r = rig("train", *takes, "-o", out, *SMALL, "--config", cfg, "--batch", "1", "--stage1-steps", "0",
+                "--stage2-steps", "1", "--init", start)
+        assert r.returncode == 0, r.stderr
+        w = torch.load(out / "model.pt", weights_only=True)["state_dict"]
+        moved[factor] = {k.split(".")[0] for k in w if w[k].is_floating_point() and not torch.equal(w[k], init[k])}
+        # Stage 1 trained in stage 2 stays tied to the sources' multi-view stereo depth (mvs_depth).
+        step = [m for m in metrics(out) if not m.get("eval")][0]
+        assert ("mvs" in step) == (factor > 0), step
+    stage2 = {"depth_refine", "colour_init", "gaussian_plane"}
+    assert moved[0.0] == stage2, moved[0.0]
+    assert moved[0.5] == stage2 | {"point_init", "affine_transform"}, moved[0.5]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"stage2_trains_stage1": -1}))
+    r = rig("train", *takes, "-o", tmp_path / "bad", *SMALL, "--config", bad)
+    one_line_exit_2(r)
+    assert "stage2_trains_stage1" in r.stderr
+
+
+def test_a_run_may_add_the_stereo_cascade_to_weights_trained_without_it(takes, light, whole, tmp_path):
+    """config.GROWN_FROM_ZERO: --init from a model without the cascade starts the cascade at zero
+    (the same model until it trains); a model with one does not fit a run without."""
+    start = whole[0] / "model.pt"
+    cfg = tmp_path / "cascade.json"
+    cfg.write_text(json.dumps({**LIGHT, "model": {"backbone": {"stereo_cascade": 4}}}))
+    out = tmp_path / "cascade"
+    r = rig("train", *takes, "-o", out, *SMALL, "--config", cfg, "--batch", "1", "--stage1-steps", "1",
+            "--stage2-steps", "0", "--init", start)
+    assert r.returncode == 0, r.stderr
+    w0 = torch.load(start, weights_only=True)["state_dict"]
+    w1 = torch.load(out / "model.pt", weights_only=True)["state_dict"]
+    assert any(k.startswith("point_init.cascade.") for k in w1) and not any(k.startswith("point_init.cascade.") for k in w0)
+    assert any(not torch.equal(w1[k], w0[k]) for k in w0 if k.startswith("point_init.") and w0[k].is_floating_point())
+    r = rig("train", *takes, "-o", tmp_path / "back", *SMALL, "--config", light, "--batch", "1",
+            "--stage1-steps", "1", "--stage2-steps", "0", "--init", out / "model.pt")
+    one_line_exit_2(r)
+    assert "configuration" in r.stderr
+
+
 def test_an_unwritable_output_folder_is_refused_before_any_work(takes, tmp_path):
     r = rig("train", *takes, "-o", "/proc/rig-train", *SMALL)
     one_line_exit_2(r)
