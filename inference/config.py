@@ -151,6 +151,9 @@ class Stage1Config:
     scale_search_range: float = 0.2
     # T scaled by each point's opacity (1 - 1/confidence) to this power; 0: T as learned.
     translation_gate: float = 0.0
+    # T keeps only its part along each point's ray from its own camera: T moves a point nearer or
+    # farther, never off the pixel it came from (a calibrated backbone's points lie on their rays).
+    translation_along_rays: bool = False
 
     def __post_init__(self) -> None:
         if self.affine not in ("learned", "bypass"):
@@ -163,6 +166,8 @@ class Stage1Config:
             raise InferenceError(f"stage1: scale_search_range must be between 0 and 1, got {self.scale_search_range!r}")
         if not (isinstance(self.translation_gate, (int, float)) and self.translation_gate >= 0):
             raise InferenceError(f"stage1: translation_gate must be >= 0, got {self.translation_gate!r}")
+        if not isinstance(self.translation_along_rays, bool):
+            raise InferenceError(f"stage1: translation_along_rays must be true or false, got {self.translation_along_rays!r}")
 
 
 ZBUFFERS = ("occlusion", "reference")
@@ -295,7 +300,7 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 # candidates depth refinement searches (its 3-D convolutions slide along the candidates), and stage
 # 1's scale search. A run may start from weights trained with other values of these (fine-tuning to them).
 WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
-                               "stage1": {"scale_search", "scale_search_range", "translation_gate"},
+                               "stage1": {"scale_search", "scale_search_range", "translation_gate", "translation_along_rays"},
                                "backbone": {"stereo_cascade_range"}}
 
 # Weight-shaping keys a run may turn on over weights trained without them: the modules they add

@@ -29,6 +29,7 @@ from inference.model.scale_search import ScaleSearch, rescale
 from inference.model.geometry import (
     in_image,
     invert_pose,
+    pixel_rays,
     project,
     resize_intrinsics,
     sample,
@@ -217,6 +218,11 @@ class AffineTransform(nn.Module):
             t_l = t_l * confidence_to_opacity(pm.conf_left) ** p
             t_r = t_r * confidence_to_opacity(pm.conf_right) ** p
         sv = s.reshape(b, 3, 1, 1)
+        if self.cfg.translation_along_rays:
+            # Each pixel's ray from the calibration (the left frame; no backbone's units involved).
+            rot = right_to_left[:, :3, :3]
+            t_l = _along(t_l, pixel_rays(left_K, cw, ch))
+            t_r = _along(t_r, torch.einsum("bij,bjhw->bihw", rot, pixel_rays(right_K, cw, ch)))
         points_left, points_right = sv * pm.points_left + t_l, sv * pm.points_right + t_r
         if self.cfg.scale_search:
             if left_image is None or right_image is None:
@@ -225,3 +231,9 @@ class AffineTransform(nn.Module):
             points_left, points_right = rescale(points_left, points_right, k, right_to_left)
             s = s * k[:, None]
         return AffineOutput(points_left, points_right, s, t_l, t_r)
+
+
+def _along(t: torch.Tensor, ray: torch.Tensor) -> torch.Tensor:
+    """The part of t (B, 3, H, W) along ray (B, 3, H, W, from the camera's centre to the point)."""
+    unit = ray / torch.sqrt((ray ** 2).sum(1, keepdim=True)).clamp(min=1e-9)
+    return (t * unit).sum(1, keepdim=True) * unit

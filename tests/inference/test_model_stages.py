@@ -11,6 +11,7 @@ from inference.model.backbone import OracleBackbone, TinyBackbone
 from inference.model.geometry import (
     invert_pose,
     pixel_rays,
+    project,
     relative_pose,
     transform_points,
 )
@@ -130,6 +131,30 @@ def test_the_translation_gate_scales_t_by_each_points_opacity():
         assert torch.allclose(outs[gate].points_left, s * pm.points_left + t0 * opacity ** gate, atol=1e-5)
     with pytest.raises(Exception, match="translation_gate"):
         Stage1Config(translation_gate=-1.0)
+
+
+def test_translation_along_rays_keeps_every_point_on_its_pixels_ray():
+    """translation_along_rays: T keeps its part along each pixel's ray, so a point projects back
+    onto the pixel it came from in its own camera, the right view's too."""
+    pm, left, right, r2l = oracle_maps("metric")
+    outs = {}
+    for along in (False, True):
+        torch.manual_seed(1)
+        layer = AffineTransform(Stage1Config(iterations=2, translation_along_rays=along, scale_reference="one"), pm.tokens_left.shape[-1], COARSE)
+        torch.nn.init.normal_(layer.translation.delta[-1].weight, std=0.2)
+        with torch.no_grad():
+            outs[along] = layer(pm, t(left.K), t(right.K), r2l)
+    cw, ch = COARSE
+    grid = pixel_rays(torch.eye(3)[None], cw, ch)[:, :2]
+    l2r = invert_pose(r2l)
+    for along, out in outs.items():
+        uv_l, _ = project(out.points_left, t(left.K))
+        uv_r, _ = project(transform_points(l2r, out.points_right), t(right.K))
+        off = max(float((uv_l - grid).abs().max()), float((uv_r - grid).abs().max()))
+        assert (off < 1e-2) if along else (off > 0.5), (along, off)
+    # What is left of T is its projection: no longer than T, and along the ray.
+    assert (outs[True].translation_left.norm(dim=1) <= outs[False].translation_left.norm(dim=1) + 1e-6).all()
+    assert outs[True].translation_left.abs().max() > 1e-3
 
 
 def test_translation_and_scale_stay_bounded_whatever_the_weights():
