@@ -149,6 +149,7 @@ class Stage1Config:
     # training stage 1 with it on is untried.
     scale_search: int = 0
     scale_search_range: float = 0.2
+    scale_search_floor: float = 0.0  # the softmin's temperature floor, a part of the mean error (ScaleSearch)
     # T scaled by each point's opacity (1 - 1/confidence) to this power; 0: T as learned.
     translation_gate: float = 0.0
     # T keeps only its part along each point's ray from its own camera: T moves a point nearer or
@@ -164,6 +165,8 @@ class Stage1Config:
             raise InferenceError(f"stage1: scale_search must be 0 (off) or an integer >= 2, got {self.scale_search!r}")
         if not 0 < self.scale_search_range < 1:
             raise InferenceError(f"stage1: scale_search_range must be between 0 and 1, got {self.scale_search_range!r}")
+        if not (isinstance(self.scale_search_floor, (int, float)) and 0 <= self.scale_search_floor < 1):
+            raise InferenceError(f"stage1: scale_search_floor must be in [0, 1), got {self.scale_search_floor!r}")
         if not (isinstance(self.translation_gate, (int, float)) and self.translation_gate >= 0):
             raise InferenceError(f"stage1: translation_gate must be >= 0, got {self.translation_gate!r}")
         if not isinstance(self.translation_along_rays, bool):
@@ -300,7 +303,7 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 # candidates depth refinement searches (its 3-D convolutions slide along the candidates), and stage
 # 1's scale search. A run may start from weights trained with other values of these (fine-tuning to them).
 WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
-                               "stage1": {"scale_search", "scale_search_range", "translation_gate", "translation_along_rays"},
+                               "stage1": {"scale_search", "scale_search_range", "scale_search_floor", "translation_gate", "translation_along_rays"},
                                "backbone": {"stereo_cascade_range"}}
 
 # Weight-shaping keys a run may turn on over weights trained without them: the modules they add

@@ -177,7 +177,7 @@ class AffineTransform(nn.Module):
             self.scale_head = ScaleHead(cfg, token_dim)
             self.translation = TranslationGRU(cfg, token_dim)
             if cfg.scale_search:
-                self.scale_search = ScaleSearch(cfg.scale_search, cfg.scale_search_range)
+                self.scale_search = ScaleSearch(cfg.scale_search, cfg.scale_search_range, cfg.scale_search_floor)
 
     def forward(self, pm: PointMaps, left_K: torch.Tensor, right_K: torch.Tensor, right_to_left: torch.Tensor,
                 left_image: torch.Tensor | None = None, right_image: torch.Tensor | None = None) -> AffineOutput:
