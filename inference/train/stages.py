@@ -51,10 +51,11 @@ def log_depth_error(pred: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor)
     return ((e * m).sum(1) / m.sum(1).clamp(min=1.0)).mean()
 
 
-def source_depth_error(affine, left: Views, right: Views, sd: SourceDepth) -> torch.Tensor:
-    """Both sources' stage-1 depth against their multi-view stereo depth (log_depth_error, averaged)."""
-    z_right = transform_points(relative_pose(right.poses, left.poses), affine.points_right)[:, 2]
-    return 0.5 * (log_depth_error(affine.points_left[:, 2], sd.left, sd.left_mask)
+def source_depth_error(points_left: torch.Tensor, points_right: torch.Tensor, left: Views, right: Views, sd: SourceDepth) -> torch.Tensor:
+    """Both sources' stage-1 depth (point maps in the left frame) against their multi-view stereo
+    depth (log_depth_error, averaged)."""
+    z_right = transform_points(relative_pose(right.poses, left.poses), points_right)[:, 2]
+    return 0.5 * (log_depth_error(points_left[:, 2], sd.left, sd.left_mask)
                   + log_depth_error(z_right, sd.right, sd.right_mask))
 
 
@@ -134,7 +135,7 @@ class Stage1Loss(nn.Module):
             loss = loss + self.plane_render * l_planes
         l_mvs = None
         if self.mvs_depth > 0 and batch.source_depth is not None:
-            l_mvs = source_depth_error(affine, batch.left, batch.right, batch.source_depth)
+            l_mvs = source_depth_error(affine.points_left, affine.points_right, batch.left, batch.right, batch.source_depth)
             loss = loss + self.mvs_depth * l_mvs
         # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
         cd = None
@@ -194,7 +195,8 @@ class Stage2Loss(nn.Module):
         l_mvs = None
         if self.mvs_depth > 0 and batch.source_depth is not None:
             # The sets of a step repeat per view (_expand): their first copies are the batch's sets.
-            l_mvs = source_depth_error(_first_of_each(out["affine"], n), L, R, batch.source_depth)
+            a = out["affine"]
+            l_mvs = source_depth_error(a.points_left[::n], a.points_right[::n], L, R, batch.source_depth)
             loss = loss + self.mvs_depth * l_mvs
         with torch.no_grad():
             mse = ((out["image"] - T.images) ** 2).mean()
@@ -202,14 +204,3 @@ class Stage2Loss(nn.Module):
                        **({"mvs": float(l_mvs)} if l_mvs is not None else {}),
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10)))}
         return loss, metrics, {"render": out["image"].detach(), "truth": T.images}
-
-
-@dataclass
-class _Points:
-    points_left: torch.Tensor
-    points_right: torch.Tensor
-
-
-def _first_of_each(affine, n: int) -> _Points:
-    """Stage 1's point maps of each frame set once, out of a batch where every set repeats n times."""
-    return _Points(affine.points_left[::n], affine.points_right[::n])
