@@ -26,6 +26,9 @@ import numpy as np
 from sync.errors import SyncError
 
 
+LINEARITY = 0.01  # how far a frame's brightness may depart from its share of the flash, as a fraction
+
+
 @dataclass(frozen=True)
 class FlashEstimate:
     onset_ns: float  # on the timeline of the frame timestamps given
@@ -154,7 +157,10 @@ def find_flash(times_ns: Sequence[float], trace: Sequence[float], exposure_ns: U
     sigma = max(spread(y_all[away]), spread(y_all[a + 1:b]), float(np.sqrt(sse[best] / max(1, len(ys) - 3))), noise, 0.1)
     ok = sse <= sse[best] + 9.0 * sigma ** 2
     onset = 0.5 * (grid_on[ok].min() + grid_on[ok].max())
-    uncertainty = 0.5 * (grid_on[ok].max() - grid_on[ok].min())
+    # never under the grid's step, nor under what a 1 % departure from a linear response (the
+    # codec's rounding, a gamma left in the pixels) moves the onset by: 1 % of the exposure
+    uncertainty = max(0.5 * (grid_on[ok].max() - grid_on[ok].min()), float(onsets[1] - onsets[0]),
+                      LINEARITY * float(exp_all[a]))
     end_t = 0.5 * (grid_off[ok].min() + grid_off[ok].max())
     d_best = float(duration_ns) if duration_ns is not None else float(end_t - onset)
     return FlashEstimate(

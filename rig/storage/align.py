@@ -179,7 +179,9 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
     except SyncError as exc:
         result.problem = str(exc)
         return result, None
-    result.rate_ppm, result.error_periods = fit.rate_ppm, fit.error_periods
+    stamps = [rec["device_ts_ns"] for rec, _ in frames.values()]
+    # frames beyond the flashes take the rate's uncertainty along: the take's worst frame is stated
+    result.rate_ppm, result.error_periods = fit.rate_ppm, fit.error_over(min(stamps), max(stamps))
     placement, delays = {}, []
     for frame_id, (rec, _) in frames.items():
         pos = float(fit.position(rec["device_ts_ns"]))

@@ -144,8 +144,9 @@ def _align_one(path: Path, result: VideoAlignment, flashes: list[dict], rate_hz:
     result.pulses_per_second = round(fit.slope * 1e9, 7)
     result.pulses_per_frame = round(fit.slope * 1e9 / fps, 7)
     result.rate_ppm = fit.rate_ppm
-    result.error_periods = fit.error_periods
-    result.error_frames = round(fit.error_periods * fps / rate_hz, 4)
+    last_s = result.pts0_s + ((result.frames or 1) - 1) / fps  # the video's last frame: the rate's uncertainty grows to it
+    result.error_periods = fit.error_over(result.pts0_s * 1e9, last_s * 1e9)
+    result.error_frames = round(result.error_periods * fps / rate_hz, 4)
 
 
 def _first_pts(container, stream) -> Optional[int]:

@@ -54,10 +54,32 @@ class ClockFit:
     at_onset: float  # its place on the trigger axis (pulse periods)
     slope: float  # pulse periods per ns of the camera's clock
     rate_ppm: Optional[float]  # how fast the camera's clock runs against the board's (None: one flash, nominal)
-    error_periods: float  # the fit's uncertainty, in pulse periods
+    error_periods: float  # the fit's uncertainty between the flashes, in pulse periods
+    onsets_ns: tuple[float, ...] = ()  # every flash's onset on the camera's clock
+    uncertainties_ns: tuple[float, ...] = ()  # and how far off it may be
+    residual_periods: float = 0.0  # the flashes' largest distance from the line (three or more)
 
     def position(self, t_ns):
         return self.at_onset + self.slope * (np.asarray(t_ns, dtype=np.float64) - self.onset_ns)
+
+    def error_at(self, t_ns: float) -> float:
+        """The uncertainty of position(t_ns), in pulse periods: each flash's onset uncertainty
+        carried through the line to t (a time beyond the flashes moves with the rate, so its
+        uncertainty grows with the distance), plus the fit's residual."""
+        x = np.asarray(self.onsets_ns, dtype=np.float64) - self.onset_ns
+        u = np.asarray(self.uncertainties_ns, dtype=np.float64)
+        if x.size < 2 or np.ptp(x) == 0:
+            weights = np.ones(1)  # one flash: the offset only, at the nominal rate
+            u = u[:1]
+        else:  # the least-squares line's position at t is sum(w_i * place_i)
+            dx = float(t_ns) - self.onset_ns - x.mean()
+            weights = 1.0 / x.size + (x - x.mean()) * dx / float(((x - x.mean()) ** 2).sum())
+        return round(float(np.abs(weights) @ u) * self.slope + self.residual_periods, 4)
+
+    def error_over(self, t0_ns: float, t1_ns: float) -> float:
+        """The largest uncertainty over a span of the camera's clock (at one of its ends: the
+        uncertainty is convex in t) and never under the one between the flashes."""
+        return max(self.error_at(t0_ns), self.error_at(t1_ns), self.error_periods)
 
 
 def fit_clock(points: list[tuple[float, float, float]], rate_hz: float) -> ClockFit:
@@ -80,4 +102,5 @@ def fit_clock(points: list[tuple[float, float, float]], rate_hz: float) -> Clock
     fit = icpt + slope * (onsets - onsets[0])
     residual = float(np.max(np.abs(fit - places))) if len(points) > 2 else 0.0
     error = round(max(p[2] for p in points) / period_ns + residual, 4)
-    return ClockFit(float(onsets[0]), float(icpt), float(slope), rate_ppm, error)
+    return ClockFit(float(onsets[0]), float(icpt), float(slope), rate_ppm, error,
+                    tuple(float(o) for o in onsets), tuple(float(p[2]) for p in points), residual)
