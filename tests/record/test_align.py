@@ -92,14 +92,18 @@ def test_align_gives_free_running_frames_their_pulse_and_offset(take):
         assert cam["problem"] is None, cam
         assert len([f for f in cam["flashes"] if "onset_ns" in f]) == 2
         assert cam["placed"] >= cam["frames"] - 3, cam  # at most the frames beyond the take's first and last pulse
-        assert cam["error_periods"] < 0.1, cam
+        # An onset in the sensor's dead time (30 ms exposures at 30 fps) is known to half the gap, and the
+        # rate carries that to the take's ends: once 0.114 stated (a flash 0.0875 loose) where the
+        # frames were within 0.003 of the truth.
+        assert cam["error_periods"] < 0.25, cam
         assert 25 < cam["latency_ms"] < 40, cam  # a sim camera delivers at its exposure's end: 30 ms after its start
         assert cam["rate_ppm"] is not None and abs(cam["rate_ppm"]) < 1000, cam  # two flashes: the clock's rate too
     errors = _truth_errors(take)
     for name, (wrong, worst, n) in errors.items():
-        print(f"{name}: {n} frames, {len(wrong)} in the wrong set, offset error at most {worst:.4f} frame periods")
+        print(f"{name}: {n} frames, {len(wrong)} in the wrong set, offset error at most {worst:.4f} frame periods "
+              f"(stated {report['cameras'][name]['error_periods']})")
         assert n > 100 and not wrong, errors
-        assert worst < 0.1, errors
+        assert worst < 0.1, errors  # the stated uncertainty, up to 0.014-0.12 here, is not always above it: 0.046 once
     backup = Path(report["backup"])
     assert backup.read_bytes() == before  # the original index, byte for byte
     assert json.loads((take / "alignment.json").read_text())["cameras"]["sup1"]["placed"] == report["cameras"]["sup1"]["placed"]
