@@ -100,6 +100,10 @@ class TrainConfig:
     # show through it. The view's photometric loss reaches the points and their opacity through
     # depth initialisation's soft z-buffer.
     stage2_trains_stage1: float = 0.0
+    # Learning-rate multipliers by parameter name prefix, e.g. {"point_init.cascade.": 10}: a module
+    # added to trained weights (config.GROWN_FROM_ZERO) learns from scratch at a rate the trained
+    # rest would not stand. The longest matching prefix wins; the stage's own factor multiplies it.
+    lr_factors: dict = field(default_factory=dict)
 
     def check(self) -> None:
         self.stage1.check("stage1")
@@ -120,6 +124,9 @@ class TrainConfig:
             self.mvs.check()
         except ValueError as exc:
             raise InferenceError(str(exc)) from None
+        if not isinstance(self.lr_factors, dict) or any(
+                not isinstance(k, str) or not k or isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 for k, v in self.lr_factors.items()):
+            raise InferenceError(f"lr_factors must map parameter name prefixes to numbers > 0, got {self.lr_factors!r}")
         for name in ("mvs_neighbours", "supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:

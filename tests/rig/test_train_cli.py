@@ -233,6 +233,31 @@ def test_a_run_may_add_the_stereo_cascade_to_weights_trained_without_it(takes, l
     assert "configuration" in r.stderr
 
 
+def test_lr_factors_give_a_module_grown_from_zero_its_own_rate(takes, light, whole, tmp_path):
+    """lr_factors by parameter name prefix: Adam's first step moves each weight by about its rate, so
+    the cascade added to trained weights (its last layers at zero) moves about 50 times as far as
+    the rest of stage 1."""
+    start = whole[0] / "model.pt"
+    cfg = tmp_path / "fast.json"
+    cfg.write_text(json.dumps({**LIGHT, "model": {"backbone": {"stereo_cascade": 4}}, "lr_factors": {"point_init.cascade.": 50}}))
+    out = tmp_path / "fast"
+    r = rig("train", *takes, "-o", out, *SMALL, "--config", cfg, "--batch", "1", "--stage1-steps", "1",
+            "--stage2-steps", "0", "--init", start)
+    assert r.returncode == 0, r.stderr
+    w0 = torch.load(start, weights_only=True)["state_dict"]
+    w1 = torch.load(out / "model.pt", weights_only=True)["state_dict"]
+    zero = [k for k in w1 if k.startswith(("point_init.cascade.regularise.2.", "point_init.cascade.refine.2.", "point_init.cascade.confidence.2."))]
+    assert zero and not any(k in w0 for k in zero)
+    moved_grown = max(float(w1[k].abs().max()) for k in zero)  # they started at zero
+    moved_rest = max(float((w1[k] - w0[k]).abs().max()) for k in w0 if k.startswith("point_init.") and w0[k].is_floating_point())
+    assert 25 < moved_grown / moved_rest < 75, (moved_grown, moved_rest)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"lr_factors": {"point_init.": 0}}))
+    r = rig("train", *takes, "-o", tmp_path / "bad", *SMALL, "--config", bad)
+    one_line_exit_2(r)
+    assert "lr_factors" in r.stderr
+
+
 def test_an_unwritable_output_folder_is_refused_before_any_work(takes, tmp_path):
     r = rig("train", *takes, "-o", "/proc/rig-train", *SMALL)
     one_line_exit_2(r)
