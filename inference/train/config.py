@@ -124,8 +124,10 @@ class TrainConfig:
             self.mvs.check()
         except ValueError as exc:
             raise InferenceError(str(exc)) from None
-        if not isinstance(self.lr_factors, dict) or any(
-                not isinstance(k, str) or not k or isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 for k, v in self.lr_factors.items()):
+        def factor_ok(prefix, value) -> bool:
+            return isinstance(prefix, str) and bool(prefix) and isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+
+        if not isinstance(self.lr_factors, dict) or not all(factor_ok(k, v) for k, v in self.lr_factors.items()):
             raise InferenceError(f"lr_factors must map parameter name prefixes to numbers > 0, got {self.lr_factors!r}")
         for name in ("mvs_neighbours", "supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
             v = getattr(self, name)
@@ -135,6 +137,11 @@ class TrainConfig:
     @property
     def backbone_trainable(self) -> bool:
         return self.model.backbone.kind not in PRETRAINED_BACKBONES or bool(self.train_backbone)
+
+    def lr_factor(self, name: str) -> float:
+        """The learning-rate multiplier of the parameter called `name` (lr_factors: the longest matching prefix, else 1)."""
+        matches = [k for k in self.lr_factors if name.startswith(k)]
+        return float(self.lr_factors[max(matches, key=len)]) if matches else 1.0
 
     def gamma_at(self, step: int) -> float:
         """The Chamfer weight at stage-1 step `step` (0-based)."""

@@ -253,16 +253,12 @@ class Trainer:
             if self.cfg.stage2_trains_stage1 > 0:
                 groups.append((first, float(self.cfg.stage2_trains_stage1)))
         names = {id(p): n for n, p in m.named_parameters()}
-        prefixes = sorted(self.cfg.lr_factors, key=len, reverse=True)
         param_groups = []
         for mods, factor in groups:
-            params = [p for mod in mods for p in mod.parameters()]
-            for p in params:
+            by_factor: dict[float, list] = {}  # one optimiser group per learning-rate factor (TrainConfig.lr_factors)
+            for p in (p for mod in mods for p in mod.parameters()):
                 p.requires_grad_(True)
-            by_factor: dict[float, list] = {}
-            for p in params:
-                prefix = next((k for k in prefixes if names[id(p)].startswith(k)), None)
-                by_factor.setdefault(factor * (self.cfg.lr_factors[prefix] if prefix else 1.0), []).append(p)
+                by_factor.setdefault(factor * self.cfg.lr_factor(names[id(p)]), []).append(p)
             param_groups += [{"params": ps, "lr_factor": f} for f, ps in by_factor.items()]
         w = self.cfg.loss
         module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth) if stage == 1 else Stage2Loss(m, w, self.cfg.mvs_depth if self.cfg.stage2_trains_stage1 > 0 else 0.0)

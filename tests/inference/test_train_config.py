@@ -38,3 +38,13 @@ def test_depth_refinements_search_may_change_between_runs_but_not_its_networks()
     other = ModelConfig.from_dict(base.to_dict())
     other.stage2.feature_dim = 24
     assert weight_differences(base, other) == ["stage2.feature_dim"]
+
+
+def test_lr_factor_takes_the_longest_matching_prefix():
+    cfg = TrainConfig(lr_factors={"point_init.": 2, "point_init.cascade.": 10})
+    assert cfg.lr_factor("point_init.cascade.refine.2.weight") == 10.0
+    assert cfg.lr_factor("point_init.features.0.0.weight") == 2.0
+    assert cfg.lr_factor("depth_refine.head.0.weight") == 1.0
+    for bad in ({"point_init.": 0}, {"": 2}, {"point_init.": True}, {"point_init.": "2"}):
+        with pytest.raises(InferenceError, match="lr_factors"):
+            TrainConfig(lr_factors=bad).check()

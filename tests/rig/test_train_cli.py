@@ -213,18 +213,21 @@ def test_stage_2_trains_stage_1_through_the_view_only_when_asked(takes, whole, t
     assert "stage2_trains_stage1" in r.stderr
 
 
-def test_a_run_may_add_the_stereo_cascade_to_weights_trained_without_it(takes, light, whole, tmp_path):
-    """config.GROWN_FROM_ZERO: --init from a model without the cascade starts the cascade at zero
-    (the same model until it trains); a model with one does not fit a run without."""
-    start = whole[0] / "model.pt"
-    cfg = tmp_path / "cascade.json"
-    cfg.write_text(json.dumps({**LIGHT, "model": {"backbone": {"stereo_cascade": 4}}}))
-    out = tmp_path / "cascade"
+def grow_cascade(takes, start: Path, out: Path, extra: dict | None = None) -> tuple[Path, dict, dict]:
+    """One stage-1 step from `start` with a 4-hypothesis stereo cascade added (and `extra` config
+    keys): the run's folder and the weights before and after."""
+    cfg = out.with_suffix(".json")
+    cfg.write_text(json.dumps({**LIGHT, "model": {"backbone": {"stereo_cascade": 4}}, **(extra or {})}))
     r = rig("train", *takes, "-o", out, *SMALL, "--config", cfg, "--batch", "1", "--stage1-steps", "1",
             "--stage2-steps", "0", "--init", start)
     assert r.returncode == 0, r.stderr
-    w0 = torch.load(start, weights_only=True)["state_dict"]
-    w1 = torch.load(out / "model.pt", weights_only=True)["state_dict"]
+    return out, torch.load(start, weights_only=True)["state_dict"], torch.load(out / "model.pt", weights_only=True)["state_dict"]
+
+
+def test_a_run_may_add_the_stereo_cascade_to_weights_trained_without_it(takes, light, whole, tmp_path):
+    """config.GROWN_FROM_ZERO: --init from a model without the cascade starts the cascade at zero
+    (the same model until it trains); a model with one does not fit a run without."""
+    out, w0, w1 = grow_cascade(takes, whole[0] / "model.pt", tmp_path / "cascade")
     assert any(k.startswith("point_init.cascade.") for k in w1) and not any(k.startswith("point_init.cascade.") for k in w0)
     assert any(not torch.equal(w1[k], w0[k]) for k in w0 if k.startswith("point_init.") and w0[k].is_floating_point())
     r = rig("train", *takes, "-o", tmp_path / "back", *SMALL, "--config", light, "--batch", "1",
@@ -237,15 +240,7 @@ def test_lr_factors_give_a_module_grown_from_zero_its_own_rate(takes, light, who
     """lr_factors by parameter name prefix: Adam's first step moves each weight by about its rate, so
     the cascade added to trained weights (its last layers at zero) moves about 50 times as far as
     the rest of stage 1."""
-    start = whole[0] / "model.pt"
-    cfg = tmp_path / "fast.json"
-    cfg.write_text(json.dumps({**LIGHT, "model": {"backbone": {"stereo_cascade": 4}}, "lr_factors": {"point_init.cascade.": 50}}))
-    out = tmp_path / "fast"
-    r = rig("train", *takes, "-o", out, *SMALL, "--config", cfg, "--batch", "1", "--stage1-steps", "1",
-            "--stage2-steps", "0", "--init", start)
-    assert r.returncode == 0, r.stderr
-    w0 = torch.load(start, weights_only=True)["state_dict"]
-    w1 = torch.load(out / "model.pt", weights_only=True)["state_dict"]
+    _, w0, w1 = grow_cascade(takes, whole[0] / "model.pt", tmp_path / "fast", {"lr_factors": {"point_init.cascade.": 50}})
     zero = [k for k in w1 if k.startswith(("point_init.cascade.regularise.2.", "point_init.cascade.refine.2.", "point_init.cascade.confidence.2."))]
     assert zero and not any(k in w0 for k in zero)
     moved_grown = max(float(w1[k].abs().max()) for k in zero)  # they started at zero
