@@ -91,6 +91,10 @@ class BackboneConfig:
     # in log depth. The volume is matched at 1/4 of the coarse size, where a person is a few cells wide.
     stereo_cascade: int = 0
     stereo_cascade_range: float = 0.35
+    # The sweep reads the source images at this multiple of the coarse size (2: the fine images at
+    # every preset), so its volume's cells are 4 / stereo_input_scale coarse pixels wide; the point
+    # maps stay at the coarse size. No weight depends on it (the networks are convolutions).
+    stereo_input_scale: int = 1
     # mast3r: the public MASt3R checkpoint's network (inference.model.mast3r); every width is the
     # checkpoint's, only the depths may be reduced (tests, quick CPU runs). The weights' file says
     # its own depths (its recorded architecture), and loading it sets these.
@@ -115,6 +119,9 @@ class BackboneConfig:
                 raise InferenceError(f"backbone: need 0 < stereo_near < stereo_far, got {self.stereo_near}, {self.stereo_far}")
             if self.stereo_depths < 2 or self.patch % 4:
                 raise InferenceError("backbone: stereo needs at least 2 depths and a patch that is a multiple of 4")
+            s = self.stereo_input_scale
+            if not isinstance(s, int) or isinstance(s, bool) or not 1 <= s <= 4:
+                raise InferenceError(f"backbone: stereo_input_scale must be an integer from 1 to 4, got {s!r}")
             if not isinstance(self.stereo_cascade, int) or isinstance(self.stereo_cascade, bool) or self.stereo_cascade < 0 or self.stereo_cascade == 1:
                 raise InferenceError(f"backbone: stereo_cascade must be 0 (off) or an integer >= 2, got {self.stereo_cascade!r}")
             if not 0 < self.stereo_cascade_range < 2:
@@ -304,7 +311,7 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 # 1's scale search. A run may start from weights trained with other values of these (fine-tuning to them).
 WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
                                "stage1": {"scale_search", "scale_search_range", "scale_search_floor", "translation_gate", "translation_along_rays"},
-                               "backbone": {"stereo_cascade_range"}}
+                               "backbone": {"stereo_cascade_range", "stereo_input_scale"}}
 
 # Weight-shaping keys a run may turn on over weights trained without them: the modules they add
 # start at zero and compute nothing until trained (section.key -> their parameters' prefix).

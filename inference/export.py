@@ -334,7 +334,8 @@ def split_model(graph: onnx.ModelProto, input_names: tuple[str, ...]) -> tuple[o
     view = _with_header(extractor.extract_model(view_inputs, list(OUTPUT_NAMES)), graph, "view")
     leaked = {stage_of(n) for n in view.graph.node} & set(STAGE1_STAGES)
     if leaked:
-        raise InferenceError(f"internal: the view part holds nodes of {', '.join(sorted(leaked))}")
+        names = [n.name for n in view.graph.node if stage_of(n) in leaked][:4]
+        raise InferenceError(f"internal: the view part holds nodes of {', '.join(sorted(leaked))} ({', '.join(names)})")
     del graph.graph.output[len(OUTPUT_NAMES):]
     return graph, stage1, view
 

@@ -69,6 +69,9 @@ class Backbone(nn.Module):
 
     token_dim: int
     needs_depth: bool = False
+    # The images it reads are this multiple of the coarse size (intrinsics for that size); its point
+    # maps, confidences and token grid are at the coarse size whatever it reads.
+    input_scale: int = 1
 
 
 # -- tiny trainable backbone ---------------------------------------------------------------------

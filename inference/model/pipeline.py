@@ -48,6 +48,29 @@ def build_backbone(cfg, coarse_size: tuple[int, int]) -> Backbone:
     return BACKBONES[cfg.kind](cfg, coarse_size)
 
 
+def stage1_inputs(model: "SplatSAP", left_image, right_image, left_K, right_K):
+    """What stage 1 reads of the fine source images: the coarse images and intrinsics (the affine
+    transform's), and the images and intrinsics the backbone reads (the same, or larger where the
+    backbone reads them at a multiple of the coarse size)."""
+    s = model.cfg.sizes
+    cw, ch = s.coarse
+    left_c = F.interpolate(left_image, size=(ch, cw), mode="bilinear", align_corners=False)
+    right_c = F.interpolate(right_image, size=(ch, cw), mode="bilinear", align_corners=False)
+    left_K_c = resize_intrinsics(left_K, s.fine, s.coarse)
+    right_K_c = resize_intrinsics(right_K, s.fine, s.coarse)
+    k = model.point_init.input_scale
+    size = (cw * k, ch * k)
+    if size == s.coarse:
+        backbone = (left_c, right_c, left_K_c, right_K_c)
+    elif size == s.fine:
+        backbone = (left_image, right_image, left_K, right_K)
+    else:
+        backbone = (F.interpolate(left_image, size=size[::-1], mode="bilinear", align_corners=False),
+                    F.interpolate(right_image, size=size[::-1], mode="bilinear", align_corners=False),
+                    resize_intrinsics(left_K, s.fine, size), resize_intrinsics(right_K, s.fine, size))
+    return (left_c, right_c, left_K_c, right_K_c), backbone
+
+
 class StageTimer:
     """Wall-clock milliseconds per stage; synchronises CUDA so that GPU work is counted where it runs."""
 
@@ -103,7 +126,6 @@ class SplatSAP(nn.Module):
     def run(self, left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose, left_depth=None, right_depth=None) -> dict:
         """The forward pass, returning every intermediate (for tests and training)."""
         s = self.cfg.sizes
-        cw, ch = s.coarse
         right_to_left = relative_pose(left_pose, right_pose)
         left_to_target = relative_pose(target_pose, left_pose)
         target_to_left = relative_pose(left_pose, target_pose)
@@ -111,11 +133,8 @@ class SplatSAP(nn.Module):
         target_K_fine = resize_intrinsics(target_K, s.output, s.fine)
 
         with self._stage("point_init"):
-            left_c = F.interpolate(left_image, size=(ch, cw), mode="bilinear", align_corners=False)
-            right_c = F.interpolate(right_image, size=(ch, cw), mode="bilinear", align_corners=False)
-            left_K_c = resize_intrinsics(left_K, s.fine, s.coarse)
-            right_K_c = resize_intrinsics(right_K, s.fine, s.coarse)
-            pm = self.point_init(left_c, right_c, left_K_c, right_K_c, right_to_left, left_depth, right_depth)
+            (left_c, right_c, left_K_c, right_K_c), backbone_inputs = stage1_inputs(self, left_image, right_image, left_K, right_K)
+            pm = self.point_init(*backbone_inputs, right_to_left, left_depth, right_depth)
         with self._stage("affine_transform"):
             affine = self.affine_transform(pm, left_K_c, right_K_c, right_to_left, left_c, right_c)
         with self._stage("depth_init"):

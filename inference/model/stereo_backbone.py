@@ -6,7 +6,9 @@ This backbone uses what every rig has, its calibration: it sweeps D fronto-paral
 each view (MVSNet's cost volume), so depth comes from matching features, not from a learned prior.
 
 For each view i (left and right, batched) and its partner j:
-- a small CNN gives features at 1/4 of the coarse size;
+- a small CNN gives features at 1/4 of the size it reads the images at: the coarse size, or a
+  multiple of it (`stereo_input_scale`; 2 reads the fine images, so a volume cell is 2 coarse pixels
+  wide, not 4); point maps, confidences and tokens are at the coarse size either way;
 - for D depths d_k (uniform in inverse depth between `near` and `far`, in units of the baseline),
   the pixels of i at depth d_k are projected into j and j's features sampled there (4-D
   grid_sample, the D hypotheses folded into the batch);
@@ -55,7 +57,9 @@ class StereoBackbone(Backbone):
         p = cfg.patch
         self.coarse_size = (w, h)
         self.grid = (h // p, w // p)
-        self.volume_size = (w // 4, h // 4)
+        self.input_scale = cfg.stereo_input_scale
+        self.input_size = (w * self.input_scale, h * self.input_scale)
+        self.volume_size = (self.input_size[0] // 4, self.input_size[1] // 4)
         c = cfg.stereo_features
         d = cfg.stereo_depths
         self.features = nn.Sequential(_conv(3, 32, 2), _conv(32, 32), _conv(32, 48, 2), _conv(48, 48), nn.Conv2d(48, c, 1))
@@ -96,6 +100,8 @@ class StereoBackbone(Backbone):
         return logits + self.refine(torch.cat([logits, feats], dim=1))
 
     def forward(self, left, right, left_K, right_K, right_to_left, left_depth=None, right_depth=None) -> PointMaps:
+        """Images and intrinsics at `input_size` (the coarse size times `stereo_input_scale`); point
+        maps, confidences and tokens at the coarse size."""
         b = left.shape[0]
         cw, ch = self.coarse_size
         vw, vh = self.volume_size
@@ -105,9 +111,12 @@ class StereoBackbone(Backbone):
         unit = torch.cat([unit, torch.ones(b, 1, 4, dtype=left.dtype, device=left.device)], dim=1)
         r2l = right_to_left * unit
         l2r = invert_pose(r2l)
-        feats = self.features(torch.cat([left, right], dim=0) * 2.0 - 1.0)  # (2B, C, h, w)
+        # Each image scaled before they are stacked: read at the fine size they are the images depth
+        # refinement stacks and scales too, and the ONNX exporter would merge the two subgraphs into
+        # one node of this stage, which the live split's view part must not hold.
+        feats = self.features(torch.cat([left * 2.0 - 1.0, right * 2.0 - 1.0], dim=0))  # (2B, C, h, w)
         other = torch.cat([feats[b:], feats[:b]], dim=0)
-        k_vol = resize_intrinsics(torch.cat([left_K, right_K], dim=0), (cw, ch), (vw, vh))
+        k_vol = resize_intrinsics(torch.cat([left_K, right_K], dim=0), self.input_size, (vw, vh))
         k_other = torch.cat([k_vol[b:], k_vol[:b]], dim=0)
         logits = self._sweep(feats, other, k_vol, k_other, torch.cat([l2r, r2l], dim=0))
         prob = torch.softmax(logits, dim=1)
@@ -116,15 +125,18 @@ class StereoBackbone(Backbone):
         conf_logit = self.confidence(torch.cat([feats, peak, inv], dim=1))
         inv_c = F.interpolate(inv, size=(ch, cw), mode="bilinear", align_corners=False)
         conf_logit = F.interpolate(conf_logit, size=(ch, cw), mode="bilinear", align_corners=False)
-        k_coarse = torch.cat([left_K, right_K], dim=0)
+        k_coarse = resize_intrinsics(torch.cat([left_K, right_K], dim=0), self.input_size, (cw, ch))
         if self.cascade is not None:
-            inv_c, conf_logit = self.cascade(torch.cat([left, right], dim=0), feats, inv_c, conf_logit, k_coarse, torch.cat([l2r, r2l], dim=0))
+            images = torch.cat([left, right], dim=0)
+            if self.input_scale != 1:
+                images = F.interpolate(images, size=(ch, cw), mode="bilinear", align_corners=False)
+            inv_c, conf_logit = self.cascade(images, feats, inv_c, conf_logit, k_coarse, torch.cat([l2r, r2l], dim=0))
         conf = 1.0 + torch.exp(conf_logit.clamp(max=20.0))
         pts = pixel_rays(k_coarse, cw, ch) / inv_c.clamp(min=1e-6)
         pts_l = pts[:b]
         pts_r = transform_points(r2l, pts[b:])
         p = self.cfg.patch
-        tokens = F.avg_pool2d(torch.cat([feats, prob], dim=1), p // 4).flatten(2).transpose(1, 2)  # (2B, h*w, C + D)
+        tokens = F.avg_pool2d(torch.cat([feats, prob], dim=1), p * self.input_scale // 4).flatten(2).transpose(1, 2)  # (2B, h*w, C + D)
         planes = None
         if self.training:
             d = self.inverse_depths.shape[0]

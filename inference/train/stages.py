@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from inference.model.backbone import confidence_to_opacity
 from inference.model.geometry import in_image, project, relative_pose, resize_intrinsics, transform_points
-from inference.model.pipeline import SplatSAP
+from inference.model.pipeline import SplatSAP, stage1_inputs
 from inference.train.chamfer import chamfer_6d
 from inference.train.config import LossWeights
 from inference.train.data import Views
@@ -79,14 +79,9 @@ def _expand(x: torch.Tensor, s: int) -> torch.Tensor:
 
 def stage1_forward(model: SplatSAP, left: Views, right: Views):
     """Point maps and affine transform as the pipeline computes them (coarse images and intrinsics)."""
-    s = model.cfg.sizes
-    cw, ch = s.coarse
-    left_c = F.interpolate(left.images, size=(ch, cw), mode="bilinear", align_corners=False)
-    right_c = F.interpolate(right.images, size=(ch, cw), mode="bilinear", align_corners=False)
-    kl = resize_intrinsics(left.K, s.fine, s.coarse)
-    kr = resize_intrinsics(right.K, s.fine, s.coarse)
+    (left_c, right_c, kl, kr), backbone_inputs = stage1_inputs(model, left.images, right.images, left.K, right.K)
     r2l = relative_pose(left.poses, right.poses)
-    pm = model.point_init(left_c, right_c, kl, kr, r2l)
+    pm = model.point_init(*backbone_inputs, r2l)
     affine = model.affine_transform(pm, kl, kr, r2l, left_c, right_c)
     return left_c, right_c, kl, kr, r2l, pm, affine
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 
 from inference.config import BackboneConfig
-from inference.model.geometry import invert_pose, pixel_rays, project, transform_points
+from inference.model.geometry import invert_pose, pixel_rays, project, resize_intrinsics, transform_points
 from inference.model.stereo_backbone import StereoBackbone
 
 W, H = 128, 64
@@ -161,3 +161,80 @@ def test_the_cascade_exports_to_onnx_runtime_within_float_rounding():
         ref = Depth().eval()(*args)
     assert np.abs(got[0] - ref[0].numpy()).max() < 1e-4
     assert np.abs(got[1] - ref[1].numpy()).max() / ref[1].numpy().max() < 1e-4
+
+
+def reading(scale: int, coarse: tuple[int, int]) -> StereoBackbone:
+    """backbone()'s weights in a backbone that reads its images at `scale` times `coarse`."""
+    net = StereoBackbone(BackboneConfig(kind="stereo", stereo_input_scale=scale), coarse)
+    net.load_state_dict(backbone().state_dict())
+    return net
+
+
+def test_reading_twice_the_coarse_size_sweeps_a_volume_twice_as_fine_and_returns_coarse_point_maps():
+    """At stereo_input_scale 2 the sweep is the one a backbone of twice the coarse size runs (the same
+    plane probabilities); the point maps, confidences and token grid stay at the coarse size."""
+    K, r2l = facing(1.0)
+    K2 = resize_intrinsics(K, (W, H), (2 * W, 2 * H))
+    g = torch.Generator().manual_seed(1)
+    left, right = torch.rand(1, 3, 2 * H, 2 * W, generator=g), torch.rand(1, 3, 2 * H, 2 * W, generator=g)
+    fine = reading(2, (W, H)).train()
+    big = reading(1, (2 * W, 2 * H)).train()
+    with torch.no_grad():
+        a = fine(left, right, K2, K2, r2l)
+        b = big(left, right, K2, K2, r2l)
+    assert fine.volume_size == (W // 2, H // 2)
+    torch.testing.assert_close(a.planes.prob_left, b.planes.prob_left)
+    assert a.points_left.shape == (1, 3, H, W) and a.conf_left.shape == (1, 1, H, W)
+    grid = pixel_rays(torch.eye(3)[None], W, H)[:, :2]
+    uv, _ = project(a.points_left, K)
+    assert (uv - grid).abs().max() < 1e-3  # on the coarse camera's rays
+    assert a.token_grid == (H // 16, W // 16) and a.tokens_left.shape == (1, (H // 16) * (W // 16), fine.token_dim)
+    # Its tokens pool the same features over twice the window: the big backbone's tokens, pooled 2x2.
+    tb = b.tokens_left.transpose(1, 2).reshape(1, -1, H // 8, W // 8)
+    pooled = torch.nn.functional.avg_pool2d(tb, 2).flatten(2).transpose(1, 2)
+    torch.testing.assert_close(a.tokens_left, pooled)
+
+
+def test_the_pipeline_hands_a_backbone_reading_twice_the_coarse_size_the_fine_images():
+    from inference.config import ModelConfig, Sizes
+    from inference.model.pipeline import build_model
+
+    cfg = ModelConfig(sizes=Sizes(coarse=(W, H), fine=(2 * W, 2 * H), output=(2 * W, 2 * H)),
+                      backbone=BackboneConfig(kind="stereo", stereo_input_scale=2))
+    model = build_model(cfg)
+    seen = []
+    model.point_init.register_forward_hook(lambda m, args, out: seen.append((args[0].shape[-2:], out.points_left.shape[-2:])))
+    K, r2l = facing(1.0)
+    K2 = resize_intrinsics(K, (W, H), (2 * W, 2 * H))
+    pose = torch.eye(4)[None]
+    left, right = torch.rand(2, 1, 3, 2 * H, 2 * W)
+    with torch.no_grad():
+        model(left, right, K2, K2, pose, invert_pose(r2l), K2, pose)
+    assert seen == [((2 * H, 2 * W), (H, W))]
+
+
+def test_stereo_input_scale_is_checked():
+    import pytest
+
+    from inference.errors import InferenceError
+
+    for bad in (0, 5, 1.5, True):
+        with pytest.raises(InferenceError, match="stereo_input_scale"):
+            BackboneConfig(kind="stereo", stereo_input_scale=bad)
+
+
+def test_a_backbone_reading_the_fine_images_exports_and_splits_cleanly(tmp_path):
+    """Depth refinement stacks and scales the same fine images: the exporter must not merge that into
+    a backbone node that the live split's view part would then hold (export_onnx raises if it does)."""
+    import onnx
+
+    from inference.config import ModelConfig, Sizes
+    from inference.export import export_onnx, stage_of
+    from inference.model.pipeline import build_model
+    from inference.runtime import part_path
+
+    # The fine size twice the coarse one, as at the preview and paper presets: the backbone reads the fine images themselves.
+    cfg = ModelConfig(sizes=Sizes(coarse=(128, 64), fine=(256, 128), output=(320, 160)), backbone=BackboneConfig(kind="stereo", stereo_input_scale=2))
+    export_onnx(build_model(cfg), tmp_path / "m.onnx")
+    view = {stage_of(n) for n in onnx.load(str(part_path(tmp_path / "m.onnx", "view"))).graph.node}
+    assert "depth_refine" in view and not view & {"point_init", "affine_transform"}
