@@ -57,15 +57,18 @@ def _source_depths(affine, L, R, source: FrameSource) -> dict:
             source.right: transform_points(to_right, affine.points_right)[0, 2].detach().cpu().numpy()}
 
 
-def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None) -> list[np.ndarray]:
+def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None,
+                  single: bool = False) -> list[np.ndarray]:
     """Stage 1's depth over ground truth in each source (coarse, pinhole), on the pixels the other
-    source also sees (and, given `masks` per source at the coarse size, that lie in the mask). One
-    array per source that has such pixels."""
+    source also sees (`single`: on those with ground truth that it does not see; and, given `masks`
+    per source at the coarse size, that lie in the mask). One array per source that has such pixels."""
     cams = {c: pinhole(fs.cameras[c], coarse) for c in (source.left, source.right)}
     pred = _source_depths(affine, L, R, source)
     out = []
     for c, other in ((source.left, source.right), (source.right, source.left)):
         seen = covisibility(cams[c], gt_coarse[c], [(cams[other], gt_coarse[other])])
+        if single:
+            seen = ~seen & (gt_coarse[c] > 0)
         if masks is not None:
             seen = seen & masks[c]
         if seen.any():
@@ -83,9 +86,10 @@ def view_depth_errors(depth: torch.Tensor, alpha: torch.Tensor, truth: np.ndarra
     return np.abs(d[keep] / truth[keep] - 1.0)
 
 
-def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None) -> list[float]:
+def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None,
+                  single: bool = False) -> list[float]:
     """AbsRel of stage 1's depth in each source against ground truth (see _depth_ratios for the pixels)."""
-    return [float(np.mean(np.abs(r - 1.0))) for r in _depth_ratios(affine, L, R, fs, source, gt_coarse, coarse, masks)]
+    return [float(np.mean(np.abs(r - 1.0))) for r in _depth_ratios(affine, L, R, fs, source, gt_coarse, coarse, masks, single)]
 
 
 def stage1_scale_split(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int]) -> list[tuple[float, float]]:
@@ -138,6 +142,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
     per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
     absrel: list[float] = []
     absrel_person: list[float] = []
+    absrel_single: list[float] = []
     view_absrel: list[float] = []
     view_absrel_person: list[float] = []
     split: list[tuple[float, float]] = []
@@ -154,6 +159,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         if have_depth:
             gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
             absrel += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
+            absrel_single += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, single=True)
             split += stage1_scale_split(affine, L, R, fs, source, gt_coarse, sizes.coarse)
             if all(fs.masks.get(c) is not None for c in (source.left, source.right)):
                 masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (source.left, source.right)}
@@ -200,6 +206,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         **model_figures,
         "depth_absrel": round(float(np.mean(absrel)), 5) if absrel else None,
         "depth_absrel_person": round(float(np.mean(absrel_person)), 5) if absrel_person else None,
+        "depth_absrel_single": round(float(np.mean(absrel_single)), 5) if absrel_single else None,
         # The depth the model renders in each supervision camera against that camera's truth: what
         # the image is drawn at, after depth init, refinement and splatting (stage 1's AbsRel above
         # is on the sources' pixels both see; it misses what only one sees and what the target adds).
@@ -222,6 +229,8 @@ def depth_lines(result: dict) -> list[str]:
         lines.append(f"stage-1 depth AbsRel (pixels both sources see): {100 * result['depth_absrel']:.2f} %")
     if result.get("depth_absrel_person") is not None:
         lines.append(f"  on the person masks: {100 * result['depth_absrel_person']:.2f} %")
+    if result.get("depth_absrel_single") is not None:
+        lines.append(f"  on the pixels only one source sees: {100 * result['depth_absrel_single']:.2f} %")
     if result.get("depth_scale") is not None:
         d = result["depth_scale"]
         lines.append(f"  scale (median depth / truth per source and set): {d['median_ratio_min']:.3f} to {d['median_ratio_max']:.3f}; "

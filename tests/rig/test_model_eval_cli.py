@@ -43,6 +43,7 @@ def test_eval_reports_image_depth_and_scale_figures_with_references(take, checkp
     # Depth against ground truth on co-visible pixels: an untrained model is far off, but finite.
     assert 0 < out["depth_absrel"] < 10
     assert 0 < out["depth_absrel_person"] < 10  # simulator takes carry person masks
+    assert 0 < out["depth_absrel_single"] < 10  # and pixels only one source sees (the scene beyond the other's view)
     # The error split into scale (median depth / truth per source and set) and shape.
     d = out["depth_scale"]
     assert 0 < d["median_ratio_min"] <= d["median_ratio_max"] and 0 <= d["absrel_scale_free"] < 10
@@ -59,7 +60,7 @@ def test_eval_reports_image_depth_and_scale_figures_with_references(take, checkp
                         "--max-sets", "1", "--no-references"], capture_output=True, text=True, timeout=300)
     assert t.returncode == 0, t.stderr
     assert "PSNR" in t.stdout and "AbsRel" in t.stdout and "median depth / truth" in t.stdout and "oracle" not in t.stdout
-    assert "rendered depth AbsRel" in t.stdout
+    assert "rendered depth AbsRel" in t.stdout and "only one source sees" in t.stdout
 
 
 def test_the_rendered_depth_error_of_ground_truth_depth_is_small(take, checkpoint):
