@@ -42,7 +42,7 @@ def main() -> int:
     import numpy as np
     import torch
 
-    from inference.evaluate.model_eval import _source_depths, oracle_twin
+    from inference.evaluate.model_eval import stage1_depths, oracle_twin
     from inference.metrics import covisibility, psnr
     from inference.model.checkpoint import load_checkpoint
     from inference.runtime.preprocess import pinhole
@@ -79,7 +79,7 @@ def main() -> int:
             L = pre.views(fs, [data.left], sizes.fine)
             R = pre.views(fs, [data.right], sizes.fine)
             *_, affine = stage1_forward(model, L, R)
-            ours = _source_depths(affine, L, R, data)
+            ours = stage1_depths(affine, L, R, data)
             gt = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in src}
             cams = {c: pinhole(fs.cameras[c], sizes.coarse) for c in src}
             region = {}

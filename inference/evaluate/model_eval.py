@@ -50,7 +50,7 @@ def oracle_twin(model: SplatSAP) -> SplatSAP:
     return twin.eval()
 
 
-def _source_depths(affine, L, R, source: FrameSource) -> dict:
+def stage1_depths(affine, L, R, source: FrameSource) -> dict:
     """Stage 1's depth (coarse) in each source's own camera."""
     to_right = relative_pose(R.poses, L.poses)
     return {source.left: affine.points_left[0, 2].detach().cpu().numpy(),
@@ -63,16 +63,16 @@ def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse
     source also sees (`single`: on those with ground truth that it does not see; and, given `masks`
     per source at the coarse size, that lie in the mask). One array per source that has such pixels."""
     cams = {c: pinhole(fs.cameras[c], coarse) for c in (source.left, source.right)}
-    pred = _source_depths(affine, L, R, source)
+    pred = stage1_depths(affine, L, R, source)
     out = []
     for c, other in ((source.left, source.right), (source.right, source.left)):
-        seen = covisibility(cams[c], gt_coarse[c], [(cams[other], gt_coarse[other])])
+        pick = covisibility(cams[c], gt_coarse[c], [(cams[other], gt_coarse[other])])
         if single:
-            seen = ~seen & (gt_coarse[c] > 0)
+            pick = ~pick & (gt_coarse[c] > 0)
         if masks is not None:
-            seen = seen & masks[c]
-        if seen.any():
-            out.append(pred[c][seen] / gt_coarse[c][seen])
+            pick = pick & masks[c]
+        if pick.any():
+            out.append(pred[c][pick] / gt_coarse[c][pick])
     return out
 
 
