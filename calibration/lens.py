@@ -58,10 +58,13 @@ def distort_pinhole(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     k1, k2, p1, p2, k3 = coefficients("pinhole", dist)
     x = xy[..., 0]
     y = xy[..., 1]
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    # A diverging solve's lens (or its undistortion's iterate) can send points beyond float range:
+    # they come back inf or NaN, which the callers test for, without a warning on the user's screen.
+    with np.errstate(over="ignore", invalid="ignore"):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([xd, yd], axis=-1)
 
 

@@ -151,6 +151,7 @@ def _write_failed(path, exc: OSError, what: str):
 
 def cmd_run(args: argparse.Namespace) -> int:
     from calibration.boards import load_board
+    from calibration.camera import CalibrationError
     from calibration.images import find_images
     from calibration.report import format_report
     from calibration.solve import calibrate_rig
@@ -191,6 +192,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     status.done()
     rig = result.rig
     rig.meta["images"] = str(Path(args.images).absolute())
+    unusable = _unusable_cameras(rig)
+    if unusable:  # a calibration no camera pair can use is not written, nor replaces one (--force)
+        if not args.json:
+            print(format_report(rig))
+        raise CalibrationError(_unusable_message(rig, unusable, args.output))
     written, why = save_keeping(rig, output)
     meta = rig.meta
     if args.json:
@@ -230,6 +236,23 @@ def cmd_run(args: argparse.Namespace) -> int:
             "it could not be written anywhere either and was printed on stdout"
         raise StorageError(f"{args.output}: could not write the calibration ({why}); {kept}")
     return 0
+
+
+def _unusable_cameras(rig) -> list[str]:
+    """The cameras whose verdict is `unusable` (their corners fit no lens model in the joint solve)."""
+    cams = rig.meta["report"]["cameras"]
+    return [n for n in rig.names if cams.get(n, {}).get("verdict") == "unusable"]
+
+
+def _unusable_message(rig, unusable: list[str], output) -> str:
+    from calibration.quality import RMS_UNUSABLE_PX
+
+    rms = ", ".join(f"'{n}' {rig.meta['rms_px'][n]:.2f} px" for n in unusable)
+    stalled = any("did not converge" in w for w in rig.meta["report"]["warnings"])
+    return (f"the calibration is unusable: reprojection RMS {rms} (above {RMS_UNUSABLE_PX:g} px)"
+            f"{'; the joint adjustment did not converge' if stalled else ''}; nothing was written to {output}. "
+            "Check that the board file describes the board shown (cols and rows count inner corners, "
+            "in the board's orientation) and that every camera's images of one instant share a name or number")
 
 
 def save_keeping(rig, output: Path) -> tuple[Path | None, str | None]:
@@ -333,9 +356,15 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     for name in images.cameras:
         status.update(f"calibrating {name}", force=True)
         try:
-            results[name] = calibrate_camera(name, detections.image_size[name], detections.corners.get(name, {}), object_points, opts)
+            r = calibrate_camera(name, detections.image_size[name], detections.corners.get(name, {}), object_points, opts)
         except CalibrationError as exc:
             failed[name] = str(exc)
+            continue
+        if r.verdict == "unusable":  # no intrinsics for it: listed in `failed` with why
+            failed[name] = (f"camera '{name}': reprojection RMS {r.rms_px:.2f} px over {len(r.views_used)} views: the corners fit no lens "
+                            "model (is the board file the board shown: its size, orientation and squares? a moving board?)")
+        else:
+            results[name] = r
     status.done()
     cams = {}
     for n, r in results.items():

@@ -4,15 +4,18 @@ cannot be written after all is kept beside (never lost)."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from calibration.boards import CharucoSpec
-from calibration.camera import RigCalibration
+from calibration.camera import RigCalibration, intrinsics_from_fov
+from calibration.geometry import rodrigues
 from calibration.synthetic import arc_rig, warp_board
 from rig.cli import main
 from rig.commands.calibrate import save_keeping
@@ -21,15 +24,24 @@ REPO = Path(__file__).resolve().parents[2]
 UNWRITABLE = "/proc/rig-calibrate-test"  # nobody, root included, can create anything under /proc
 BOARD = CharucoSpec(7, 5, 0.03, 0.022)
 BOARD_TOML = 'type = "charuco"\nsquares_x = 7\nsquares_y = 5\nsquare_size = 0.03\nmarker_size = 0.022\ndictionary = "DICT_5X5_100"\n'
-# One camera's views of the board: quads (clockwise from the grid's top-left) seen at varied tilts.
-QUADS = [
-    [[120, 100], [500, 120], [480, 380], [130, 360]],
-    [[100, 80], [520, 60], [540, 400], [90, 380]],
-    [[160, 120], [460, 90], [500, 420], [140, 390]],
-    [[80, 140], [420, 100], [440, 360], [100, 420]],
-    [[200, 60], [560, 110], [520, 360], [180, 420]],
-    [[140, 90], [520, 100], [460, 400], [190, 380]],
-]
+
+
+def _quads() -> list[np.ndarray]:
+    """One camera's views of the board: its square grid's corners (clockwise from the top-left) as a
+    pinhole camera 0.45 m away sees them at varied tilts, so that one lens explains every view."""
+    K = intrinsics_from_fov(640, 480, 60.0)
+    w, h = BOARD.size_m
+    grid = np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0]]) - [w / 2, h / 2, 0]
+    quads = []
+    for rx, ry, rz, dx, dy in [(0.3, 0, 0, 0, 0), (-0.35, 0.1, 0.1, 0.03, -0.02), (0, 0.4, -0.05, -0.03, 0.02),
+                               (0.1, -0.4, 0.15, 0.02, 0.03), (0.45, 0.3, 0, -0.02, -0.03), (-0.2, -0.3, -0.1, 0.0, 0.02)]:
+        pts = grid @ rodrigues(np.array([rx, ry, rz])).T + [dx, dy, 0.45]
+        uv = pts[:, :2] / pts[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+        quads.append(uv.astype(np.float32))
+    return quads
+
+
+QUADS = _quads()
 
 
 def _rig(*args, cwd) -> subprocess.CompletedProcess:
@@ -104,3 +116,49 @@ def test_export_into_an_unwritable_output_or_onto_a_file(tmp_path, fmt):
 def test_run_rejects_a_non_positive_outlier_limit(views, capsys):
     rc = main(["calibrate", "run", "--images", str(views / "imgs"), "--board", str(views / "board.toml"), "-o", "x.json", "--outlier-px", "0"])
     assert rc == 2 and "--outlier-px" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def unusable_views(views) -> Path:
+    """Views no lens explains: DIR/shifted (a stereo pair whose right images are filed one instant
+    late, as cameras counting from different numbers leave them), DIR/bent (one camera's board under
+    a wave no lens makes) beside DIR/bent/good (the same views unbent)."""
+    root = views / "unusable"
+    imgs = [cv2.imread(str(p)) for p in sorted((views / "imgs" / "cam").glob("*.png"))]
+    yy, xx = np.mgrid[0 : imgs[0].shape[0], 0 : imgs[0].shape[1]].astype(np.float32)
+    for i, img in enumerate(imgs):
+        for folder, image in (("shifted/left", img), ("shifted/right", imgs[(i + 1) % len(imgs)]), ("bent/good", img),
+                              ("bent/wavy", cv2.remap(img, xx + 12 * np.sin(yy / 25 + i), yy + 12 * np.sin(xx / 30 + 2 * i),
+                                                      cv2.INTER_LINEAR, borderValue=(255, 255, 255)))):
+            (root / folder).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(root / folder / f"{i:04d}.png"), image)
+    return root
+
+
+def test_a_rig_no_lens_explains_is_not_written_nor_replaces_a_calibration(views, unusable_views, tmp_path):
+    """Each camera alone fits, the pair does not (its views are of different instants): one line that
+    says so, exit 2, the calibration already there kept, and no numpy warning on the way."""
+    calib = tmp_path / "calib.json"
+    arc_rig(2).save(calib)
+    before = calib.read_text()
+    proc = _rig("calibrate", "run", "--images", unusable_views / "shifted", "--board", views / "board.toml", "-o", calib, "--force", cwd=tmp_path)
+    line = _one_line(proc, 2, "unusable", "'left'", "'right'", "nothing was written", "share a name or number")
+    assert "RuntimeWarning" not in proc.stderr, line
+    assert calib.read_text() == before and "verdict: left unusable, right unusable" in proc.stdout  # the report says why
+    proc = _rig("calibrate", "run", "--images", unusable_views / "shifted", "--board", views / "board.toml", "-o", "new.json", "--json", cwd=tmp_path)
+    assert proc.returncode == 2 and json.loads(proc.stdout)["exit_code"] == 2 and not (tmp_path / "new.json").exists()
+
+
+def test_intrinsics_list_a_camera_no_lens_explains_as_failed(views, unusable_views, tmp_path):
+    proc = _rig("calibrate", "intrinsics", "--images", unusable_views / "bent", "--board", views / "board.toml", "-o", "lenses.json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "wavy: unusable: camera 'wavy': reprojection RMS" in proc.stdout and "the corners fit no lens model" in proc.stdout
+    doc = json.loads((tmp_path / "lenses.json").read_text())
+    assert list(doc["cameras"]) == ["good"] and list(doc["failed"]) == ["wavy"]
+    shutil.rmtree(unusable_views / "bent" / "good")
+    try:
+        proc = _rig("calibrate", "intrinsics", "--images", unusable_views / "bent", "--board", views / "board.toml", "-o", "none.json", cwd=tmp_path)
+        _one_line(proc, 2, "no camera could be calibrated", "the corners fit no lens model")
+        assert not (tmp_path / "none.json").exists()
+    finally:
+        shutil.copytree(views / "imgs" / "cam", unusable_views / "bent" / "good")
