@@ -61,7 +61,8 @@ class DetectionSet:
 
 
 def _is_image(p: Path) -> bool:
-    return p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+    # hidden files are not views: macOS leaves `._NAME.jpg` (AppleDouble metadata) beside each image
+    return p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
 
 
 def find_images(root: str | Path) -> ImageSet:
@@ -87,7 +88,22 @@ def find_images(root: str | Path) -> ImageSet:
         raise CalibrationError(
             f"{root}: no calibration images (expected {root}/CAMNAME/*.png|jpg, or leftNN/rightNN images in {root})"
         )
+    _check_instants_shared(root, paths)
     return ImageSet(root, paths, _read_roles(root / "roles.json", paths))
+
+
+def _check_instants_shared(root: Path, paths: dict[str, dict[str, Path]]) -> None:
+    """A camera none of whose images is paired with another camera's (no file name, nor the number
+    that ends it, in common) cannot be placed in the rig: said before minutes of detection."""
+    if len(paths) < 2:
+        return
+    alone = [c for c in paths if not any(set(paths[c]) & set(per) for o, per in paths.items() if o != c)]
+    if alone:
+        examples = ", ".join(f"{c}/{next(iter(paths[c].values())).name}" for c in paths)
+        raise CalibrationError(
+            f"{root}: no image of camera(s) {', '.join(repr(c) for c in alone)} is paired with another camera's "
+            f"({examples}): the images of one instant need the same file name in every camera's folder, "
+            "or names that end in the same number, unique within each camera")
 
 
 _TRAILING_NUMBER = re.compile(r"(\d+)$")

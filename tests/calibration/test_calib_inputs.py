@@ -50,7 +50,8 @@ def test_shared_stems_stay_the_key_and_an_ambiguous_number_changes_nothing(tmp_p
     assert find_images(tmp_path / "a").views == ["0001", "0002"]
     _touch(tmp_path / "b" / "x", ["x-1.png", "x-01.png"])  # two files end in 1
     _touch(tmp_path / "b" / "y", ["y-1.png"])
-    assert find_images(tmp_path / "b").paths["x"].keys() == {"x-1", "x-01"}
+    with pytest.raises(CalibrationError, match=r"'x', 'y' is paired"):  # not keyed by number: then nothing pairs
+        find_images(tmp_path / "b")
 
 
 def test_one_cameras_intrinsics_photos_may_lie_directly_in_the_folder(tmp_path):
@@ -111,3 +112,28 @@ def test_intrinsics_of_no_camera_is_one_error_and_writes_nothing(tmp_path):
     assert proc.returncode == 2 and len(proc.stdout.strip().splitlines()) == 1, proc.stdout
     answer = json.loads(proc.stdout)
     assert "found in only 2 image(s)" in answer["error"] and not (tmp_path / "i.json").exists()
+
+
+def test_hidden_files_beside_the_images_are_not_views(tmp_path):
+    # macOS copies leave `._NAME` (AppleDouble metadata) beside each image: not images, not views
+    _touch(tmp_path / "left", ["0001.png", "._0001.png", "0002.png"])
+    _touch(tmp_path / "right", ["0001.png", "0002.png", ".0003.png"])
+    images = find_images(tmp_path)
+    assert images.views == ["0001", "0002"] and sorted(images.paths["left"]) == ["0001", "0002"]
+    assert sorted(find_camera_images(tmp_path).paths["left"]) == ["0001", "0002"]
+    # and they do not stop the cameras naming their files by time from being paired by the end number
+    _touch(tmp_path / "t" / "back", ["back-0224135219-0.jpg", "._back-0224135219-0.jpg", "back-0224135220-1.jpg"])
+    _touch(tmp_path / "t" / "mid", ["mid-0224135221-0.jpg", "mid-0224135222-1.jpg"])
+    assert find_images(tmp_path / "t").views == ["0", "1"]
+
+
+def test_a_camera_whose_images_pair_with_no_other_cameras_is_named_before_the_detection(tmp_path):
+    _touch(tmp_path / "left", ["left-1-0.jpg", "left-1-1.jpg", "left-2-1.jpg"])  # end numbers repeat: not a key
+    _touch(tmp_path / "right", ["right_1.jpg", "right_2.jpg"])
+    with pytest.raises(CalibrationError) as err:
+        find_images(tmp_path)
+    msg = str(err.value)
+    assert "'left', 'right'" in msg and "is paired with another camera's" in msg and "\n" not in msg
+    _touch(tmp_path / "top", ["right_1.jpg"])  # one camera paired with another is enough for it
+    with pytest.raises(CalibrationError, match=r"camera\(s\) 'left' is paired"):
+        find_images(tmp_path)
