@@ -207,9 +207,12 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "focal_spread_pct": None if result.intrinsics[name].focal_spread is None else round(100 * result.intrinsics[name].focal_spread, 3),
         }
         first_warning = len(warnings)
-        if views_used[name] < MIN_GOOD_VIEWS:
+        # Intrinsics given and held were not fitted here: what would make a fit of them doubtful (few
+        # views, a small part of the image, no covariance for them) says nothing of them. Their RMS does.
+        held_given = result.intrinsics[name].given and not result.intrinsics[name].prior
+        if views_used[name] < MIN_GOOD_VIEWS and not held_given:
             warnings.append(f"camera '{name}': only {views_used[name]} views used; {MIN_GOOD_VIEWS} or more are needed to trust its intrinsics")
-        if cov["fraction"] < MIN_COVERAGE:
+        if cov["fraction"] < MIN_COVERAGE and not held_given:
             where = f" (never seen: {', '.join(cov['never_seen'])})" if cov["never_seen"] else ""
             warnings.append(
                 f"camera '{name}': the board covered only {cov['fraction'] * 100:.0f}% of the image{where}; "
@@ -217,11 +220,11 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             )
         if rms_px[name] is not None and rms_px[name] > MAX_GOOD_RMS_PX:
             warnings.append(f"camera '{name}': reprojection RMS {rms_px[name]:.2f} px is high (above {MAX_GOOD_RMS_PX} px)")
-        if result.intrinsics[name].k3_held_for_views:
+        if result.intrinsics[name].k3_held_for_views and not held_given:
             warnings.append(f"camera '{name}': too few views to estimate k3; it was held at 0")
         std_of = per_camera[name]["std"]
         unknown = [k for k, v in std_of.items() if v is None]
-        if unknown:
+        if unknown and not held_given:
             why = result.solution.std_unknown_reason or "the adjustment's covariance is not defined for them"
             warnings.append(f"camera '{name}': the uncertainty of {', '.join(unknown)} is unknown ({why})")
         loose = [k for k in ("fx", "fy") if std_of[k] is not None and std_of[k] > MAX_FOCAL_STD_PCT / 100 * per_camera[name][k]]
@@ -345,7 +348,8 @@ def format_report(calib: RigCalibration) -> str:
     for name, c in rep["cameras"].items():
         std = c.get("std") or {}
         spread = c.get("focal_spread_pct")
-        lines.append(f"  {name:<10} " + "  ".join(f"{k} {_std(std.get(k))}" for k in ("fx", "fy", "cx", "cy"))
+        held = c.get("intrinsics_given") and not c.get("prior")
+        lines.append(f"  {name:<10} " + "  ".join(f"{k} {'given' if held else _std(std.get(k))}" for k in ("fx", "fy", "cx", "cy"))
                      + ("" if spread is None else f"   fx spread over subsets of the views {spread:.2f} %"))
     verdicts = {name: c.get("verdict") for name, c in rep["cameras"].items() if c.get("verdict")}
     if verdicts:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from calibration.camera import RigCalibration
+from calibration.report import format_report
 from tests.calibration.cli_helpers import run_json
 
 pytestmark = pytest.mark.slow
@@ -88,6 +89,10 @@ def test_with_the_reference_intrinsics_held_poses_match_it_within_a_degree(sleap
     for name in ("back", "mid", "top"):
         assert summary["intrinsics"][name]["fx"] == pytest.approx(rig[name].fx) and rig.meta["report"]["cameras"][name]["intrinsics_given"]
     assert not rig.meta["report"]["cameras"]["side"]["intrinsics_given"]
+    # what would make a fit of the lenses doubtful says nothing of lenses given: no "unknown uncertainty"
+    for name in ("back", "mid", "top"):
+        assert not any("uncertainty" in r or "views used" in r for r in rig.meta["report"]["cameras"][name]["reasons"]), name
+    assert "back       fx given  fy given" in format_report(rig)
     Rb, cb = ref["back"]
     for name in ("mid", "top"):
         R, c = ref[name]
