@@ -46,7 +46,8 @@ class Engine(Protocol):
     def remove_viewer(self, viewer: Viewer) -> None: ...
 
     def presets(self) -> list[dict]:
-        """Snap-to viewpoints: [{"name": camera name, "kind": "source" | "supervision"}, ...]."""
+        """Snap-to viewpoints: [{"name": camera name, "kind": "source" | "supervision", "t": where
+        it stands along the arc between the sources, 0 to 1, or None}, ...]."""
 
     def status(self) -> dict:
         """JSON-able figures: fps in/out, model ms per stage, latency percentiles, drops, camera

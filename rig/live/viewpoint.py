@@ -298,8 +298,21 @@ def _sources(rig: RigCalibration, sources) -> tuple[CameraModel, CameraModel]:
 
 def presets(rig: RigCalibration, sources: tuple[str, str] = DEFAULT_SOURCES) -> list[dict]:
     """Every calibrated camera of the rig, in calibration order: [{"name", "kind": "source" |
-    "supervision"}, ...] (what rig.live.api.Engine.presets returns)."""
-    return [{"name": c.name, "kind": "source" if c.name in sources else "supervision"} for c in rig.cameras]
+    "supervision", "t"}, ...] (what rig.live.api.Engine.presets returns). `t`: where the camera
+    stands along the arc between the sources (0 and 1 for them; for another camera the arc's point
+    nearest its pinhole, to 0.005), what a viewer's slider shows once the camera is chosen; None
+    without both sources."""
+    ends = _sources(rig, sources) if all(n in rig for n in sources) else None
+    grid = np.linspace(0.0, 1.0, 201)
+    centres = np.array([arc_camera(*ends, t).center for t in grid]) if ends else None
+    out = []
+    for c in rig.cameras:
+        if c.name in sources:
+            t = None if ends is None else float(sources.index(c.name))
+        else:
+            t = None if ends is None else round(float(grid[np.argmin(np.linalg.norm(centres - c.center, axis=1))]), 3)
+        out.append({"name": c.name, "kind": "source" if c.name in sources else "supervision", "t": t})
+    return out
 
 
 @dataclass(frozen=True)

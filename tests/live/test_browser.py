@@ -207,6 +207,9 @@ def test_preset_snaps_to_a_supervision_camera(page, live_rig):
                what="the preset to reach the engine")
     wait_view(page)
     assert "active" in page.find_element("css selector", f'#presets button[data-preset="{live_rig.supervision}"]').get_attribute("class")
+    t = next(p.get("t") for p in live_rig.presets if p["name"] == live_rig.supervision)
+    if t is not None:  # the slider shows where the camera stands between the sources
+        assert page.find_element("id", "slider-value").text == f"{t:.3f}"
     if live_rig.expected_rgb:
         assert close_to(pixel(page), live_rig.expected_rgb({"type": "viewpoint", "preset": live_rig.supervision}))
 

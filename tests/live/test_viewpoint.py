@@ -169,9 +169,10 @@ def test_slerp_takes_the_shorter_way_and_quaternions_round_trip():
 
 # -- presets ------------------------------------------------------------------------------------------
 def test_presets_are_every_calibrated_camera():
-    assert presets(RIG) == [{"name": "left", "kind": "source"}, {"name": "sup1", "kind": "supervision"},
-                            {"name": "sup2", "kind": "supervision"}, {"name": "sup3", "kind": "supervision"},
-                            {"name": "sup4", "kind": "supervision"}, {"name": "right", "kind": "source"}]
+    # t: where each stands along the arc between the sources (the slider's reading once it is chosen)
+    assert presets(RIG) == [{"name": "left", "kind": "source", "t": 0.0}, {"name": "sup1", "kind": "supervision", "t": 0.2},
+                            {"name": "sup2", "kind": "supervision", "t": 0.4}, {"name": "sup3", "kind": "supervision", "t": 0.6},
+                            {"name": "sup4", "kind": "supervision", "t": 0.8}, {"name": "right", "kind": "source", "t": 1.0}]
     for name in RIG.names:
         vp = parse_viewpoint({"type": "viewpoint", "preset": name}, RIG)
         assert vp.preset == name
@@ -187,7 +188,8 @@ def test_sources_may_have_other_names():
         parse_viewpoint({"type": "viewpoint", "t": 0.5}, rig)
     vp = parse_viewpoint({"type": "viewpoint", "t": 0.5}, rig, sources=("cam-a", "cam-b"))
     assert_same_camera(vp.camera(rig, sources=("cam-a", "cam-b")), arc_camera(LEFT, RIGHT, 0.5))
-    assert presets(rig, ("cam-a", "cam-b"))[0] == {"name": "cam-a", "kind": "source"}
+    assert presets(rig, ("cam-a", "cam-b"))[0] == {"name": "cam-a", "kind": "source", "t": 0.0}
+    assert [p["t"] for p in presets(rig)] == [None] * 6  # no arc without the sources
 
 
 # -- messages -----------------------------------------------------------------------------------------
