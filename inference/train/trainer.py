@@ -267,7 +267,13 @@ class Trainer:
         return module, param_groups
 
     def run(self, stop_after: Optional[int] = None) -> dict:
-        """Train to the end of the schedule, or `stop_after` more steps (then checkpoint and return)."""
+        """Train to the end of the schedule, or `stop_after` more steps (then checkpoint and return).
+        Ctrl-C or SIGTERM (one process, main thread) ends the step under way, writes the checkpoint and
+        raises KeyboardInterrupt: nothing trained is lost; a second one stops at once."""
+        with _StopRequests(self.world == 1) as stop:
+            return self._run(stop_after, stop)
+
+    def _run(self, stop_after: Optional[int], stop: "_StopRequests") -> dict:
         cfg = self.cfg
         total = cfg.total_steps
         stop_at = total if stop_after is None else min(total, self.step + stop_after)
@@ -306,8 +312,11 @@ class Trainer:
                 end_of_stage = self.step == offset + sched.steps
                 if self.step % cfg.eval_every == 0 or end_of_stage:
                     self.evaluate(stage)
-                if self.step % cfg.checkpoint_every == 0 or self.step % cfg.eval_every == 0 or end_of_stage or self.step == stop_at:
+                if (self.step % cfg.checkpoint_every == 0 or self.step % cfg.eval_every == 0 or end_of_stage
+                        or self.step == stop_at or stop.requested):
                     self._save(self.out / CHECKPOINT, optimizer)
+                if stop.requested:
+                    raise KeyboardInterrupt
             if self.step >= stop_at:
                 break
         if self.step >= total:
@@ -378,6 +387,40 @@ def _mean_over_ranks(metrics: dict, world: int) -> dict:
     t = torch.tensor([metrics[k] for k in keys], dtype=torch.float64)
     dist.all_reduce(t)
     return {k: float(v) / world for k, v in zip(keys, t)}
+
+
+class _StopRequests:
+    """SIGINT / SIGTERM as a request to stop after the step under way (`requested`); a second one
+    raises KeyboardInterrupt at once. Only in one process's main thread: data-parallel ranks would
+    see the request at different steps and wait for each other, so they keep the default handling."""
+
+    def __init__(self, enabled: bool):
+        import threading
+
+        self.enabled = enabled and threading.current_thread() is threading.main_thread()
+        self.requested = False
+        self._previous: dict = {}
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        import sys
+
+        print("\nrig train: stopping after this step, with a checkpoint (again to stop at once)", file=sys.stderr)
+
+    def __enter__(self) -> "_StopRequests":
+        if self.enabled:
+            import signal
+
+            self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import signal
+
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
 
 
 def _check_fresh(out: Path) -> None:

@@ -123,13 +123,23 @@ def cmd_train(args: argparse.Namespace) -> int:
     cfg = build_config(args)
     out = output_folder(args.out)
     if not args.resume and out.exists() and ((out / "checkpoint.pt").exists() or (out / "metrics.jsonl").exists()):
+        if not (out / "checkpoint.pt").exists():
+            raise ConfigError(f"{out}: holds a training run that stopped before its first checkpoint (nothing trained was "
+                              "kept); remove the folder to start it again, or choose a new folder")
         raise ConfigError(f"{out}: already holds a training run; pass --resume to continue it, or choose a new folder")
+    if not args.resume and out.is_dir() and any(out.iterdir()):
+        # a model.pt, a recorded take, anything else: a new run writes only into a new or empty folder
+        raise ConfigError(f"{out}: is not empty (it holds {next(iter(sorted(out.iterdir()))).name}); "
+                          "a new run needs a new or empty folder (nothing was written)")
     if args.init is not None and args.resume:
         raise ConfigError("--init starts a new run from a checkpoint's weights; --resume continues a run: give one of them")
     if args.init is not None and not args.init.is_file():
         raise ConfigError(f"{args.init}: no such checkpoint")
     if args.resume and not (out / "checkpoint.pt").is_file():
-        raise ConfigError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
+        stopped = (out / "metrics.jsonl").exists()
+        raise ConfigError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from"
+                          + ("; the run stopped before its first one (nothing trained was kept): remove the folder to start "
+                             "it again" if stopped else ""))
     pretrained = cfg.model.backbone.kind == "mast3r"
     if args.weights is not None:
         if not pretrained:

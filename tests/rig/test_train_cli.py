@@ -256,3 +256,43 @@ def test_lr_factors_give_a_module_grown_from_zero_its_own_rate(takes, light, who
 def test_an_unwritable_output_folder_is_refused_before_any_work(takes, tmp_path):
     r = rig("train", *takes, "-o", "/proc/rig-train", *SMALL)
     one_line_exit_2(r)
+
+
+def test_a_new_run_is_not_written_into_a_folder_that_holds_anything(takes, whole, tmp_path):
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "model.pt").write_bytes((whole[0] / "model.pt").read_bytes())
+    before = (kept / "model.pt").read_bytes()
+    r = rig("train", *takes, "-o", kept, *SMALL)
+    one_line_exit_2(r)
+    assert "is not empty" in r.stderr and "model.pt" in r.stderr
+    assert (kept / "model.pt").read_bytes() == before and sorted(p.name for p in kept.iterdir()) == ["model.pt"]
+
+
+def test_sigterm_ends_the_step_under_way_with_a_checkpoint_and_the_run_resumes(takes, light, tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "stopped"
+    args = [*SMALL, "--config", light, "--batch", "1", "--stage1-steps", "40", "--stage2-steps", "0", "--eval-every", "100"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(RIG + ["train", *map(str, takes), "-o", str(out), *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 300
+        while not ((out / "metrics.jsonl").exists() and metrics(out)) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "rig: interrupted" and "Traceback" not in err
+    logged = max(m["step"] for m in metrics(out))
+    assert 1 <= logged < 40  # the default checkpoint_every (100) would have kept nothing
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert ckpt["train"]["step"] == logged
+    r = rig("train", *takes, "-o", out, *args, "--resume", "--stop-after", "1")
+    assert r.returncode == 0, r.stderr
+    assert max(m["step"] for m in metrics(out)) == logged + 1
