@@ -63,12 +63,25 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     return data
 
 
+def load_weights(model: torch.nn.Module, state_dict, path: str | os.PathLike, strict: bool = True):
+    """`model.load_state_dict`, a checkpoint whose tensors do not fit the model (another
+    configuration's, or damaged) said in one line. Returns (missing, unexpected) keys."""
+    if not isinstance(state_dict, dict) or not all(isinstance(v, torch.Tensor) for v in state_dict.values()):
+        raise InferenceError(f"{path}: the checkpoint's weights are not a table of tensors (a damaged file?)")
+    try:
+        return model.load_state_dict(state_dict, strict=strict)
+    except RuntimeError as exc:
+        why = next((ln.strip() for ln in str(exc).splitlines() if "size mismatch" in ln or "Missing" in ln or "Unexpected" in ln),
+                   str(exc).splitlines()[0])
+        raise InferenceError(f"{path}: the checkpoint's weights do not fit its model configuration ({why[:200]})") from None
+
+
 def load_checkpoint(path: str | os.PathLike) -> SplatSAP:
     path = Path(path)
     data = read_checkpoint(path)
     cfg = ModelConfig.from_dict(data["config"], saved=True)
     model = build_model(cfg, seed=None)
-    missing, unexpected = model.load_state_dict(data["state_dict"], strict=False)
+    missing, unexpected = load_weights(model, data.get("state_dict"), path, strict=False)
     if missing or unexpected:
         raise InferenceError(f"{path}: checkpoint does not match its configuration (missing {missing[:3]}, unexpected {unexpected[:3]})")
     return model.eval()

@@ -34,7 +34,7 @@ from torch.nn.parallel import DistributedDataParallel
 from common.files import atomic_path, atomic_write_json
 from inference.errors import InferenceError, OutputError
 from inference.config import GROWN_FROM_ZERO, ModelConfig, weight_differences
-from inference.model.checkpoint import FORMAT, VERSION, read_checkpoint
+from inference.model.checkpoint import FORMAT, VERSION, load_weights, read_checkpoint
 from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
 from inference.train.data import FrameSource, Preprocessor, stack_views
@@ -115,7 +115,7 @@ class Trainer:
         saved = TrainConfig.from_dict(data["train"]["config"], saved=True)
         if saved.model.to_dict() != self.cfg.model.to_dict():
             raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (train it with its own config, or start a new folder)")
-        self.model.load_state_dict(data["state_dict"])
+        load_weights(self.model, data.get("state_dict"), path)
         self.step = int(data["train"]["step"])
         self._optim_state = data["train"].get("optimizer")
 
@@ -133,7 +133,7 @@ class Trainer:
         grown = [GROWN_FROM_ZERO[d] for d in differs if d in GROWN_FROM_ZERO and not _config_value(saved, d)]
         if saved is None or len(grown) != len(differs):
             raise InferenceError(f"{path}: the checkpoint's model configuration differs from this run's (--size, --backbone, --config)")
-        missing, unexpected = self.model.load_state_dict(data["state_dict"], strict=not grown)
+        missing, unexpected = load_weights(self.model, data.get("state_dict"), path, strict=not grown)
         if unexpected or any(not k.startswith(tuple(grown)) for k in missing):
             raise InferenceError(f"{path}: the checkpoint's weights do not fit this run's model")
 

@@ -75,3 +75,20 @@ def test_a_checkpoint_saved_before_a_renderer_setting_existed_computes_what_it_d
     assert (old.cfg.depth_init.zbuffer, old.cfg.stage2.visibility_ramp) == ("reference", 1.0)
     # a configuration a user writes gets today's defaults
     assert ModelConfig.from_dict({"depth_init": {"radius": 1}}).depth_init.zbuffer == "occlusion"
+
+
+def test_a_checkpoint_whose_tensors_do_not_fit_its_configuration_is_one_line(tmp_path, capsys):
+    from rig.cli import main
+
+    model = build_model(ModelConfig(sizes=Sizes.preset("test")), seed=3)
+    path = save_checkpoint(model, tmp_path / "damaged.pt")
+    data = torch.load(path, weights_only=True)
+    name = next(iter(data["state_dict"]))
+    data["state_dict"][name] = torch.zeros(2, 2)  # another configuration's tensor, or a damaged one
+    torch.save(data, path)
+    with pytest.raises(InferenceError, match=r"damaged\.pt: the checkpoint's weights do not fit its model configuration \(size mismatch") as err:
+        load_checkpoint(path)
+    assert err.value.exit_code == 2 and "\n" not in str(err.value)
+    assert main(["model", "export", "--checkpoint", str(path), "-o", str(tmp_path / "m.onnx")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "do not fit" in lines[0] and not (tmp_path / "m.onnx").exists()
