@@ -152,6 +152,10 @@ class NovelViewPipeline:
         self.path = Path(path)
         self.session = open_session(self.path, providers, threads)
         self.info = read_model_info(self.session, self.path)
+        part = self.info.metadata.get("splat_sap.part")
+        if part is not None:  # M.stage1.onnx or M.view.onnx: half of the graph, not a view renderer
+            whole = self.path.name.replace(f".{part}.onnx", ".onnx")
+            raise InferenceError(f"{self.path}: the {part} part of a Splat-SAP model, not a whole one; give the model itself ({whole})")
         self.sizes = self.info.config.sizes
         names = tuple(i.name for i in self.session.get_inputs())
         if names != self.info.inputs:

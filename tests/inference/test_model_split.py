@@ -15,7 +15,7 @@ from fp16_support import skip_without_float16_cpu_kernels
 from onnx import helper, numpy_helper
 
 from inference.errors import InferenceError
-from inference.runtime import SplitPipeline, part_path
+from inference.runtime import NovelViewPipeline, SplitPipeline, part_path
 from inference.runtime.metadata import read_file_metadata
 from inference.runtime.preprocess import intrinsics, pose
 from inference.runtime.synthetic import example_inputs, rig_camera
@@ -156,6 +156,10 @@ def test_a_missing_or_foreign_part_is_one_line_error(tiny_onnx, oracle_onnx, tmp
         SplitPipeline(folder("mixed", {"m.stage1.onnx": part_path(tiny, "stage1"), "m.view.onnx": part_path(oracle_onnx.path, "view")}))
     with pytest.raises(InferenceError, match="not the view part.*re-export"):
         SplitPipeline(folder("swapped", {"m.stage1.onnx": part_path(tiny, "stage1"), "m.view.onnx": part_path(tiny, "stage1")}))
+    # a part given where a whole model is wanted (`rig model check|render`): one line naming the model
+    for part in ("stage1", "view"):
+        with pytest.raises(InferenceError, match=rf"the {part} part of a Splat-SAP model, not a whole one; give the model itself \({tiny.name}\)"):
+            NovelViewPipeline(part_path(tiny, part), providers=CPU)
     with pytest.raises(InferenceError, match="target_K must be a 3x3 matrix"):
         pipe = SplitPipeline(tiny, providers=CPU)
         feeds = example_inputs(pipe.sizes, False).arrays
