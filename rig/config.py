@@ -180,6 +180,7 @@ def parse_config(data: dict, path: Optional[Path] = None) -> RigConfig:
     rig = _fields("rig", tables.get("rig", {}), RIG_KEYS, problems)
     cameras, hardware = _parse_cameras(tables.get("cameras"), "cameras" in data, problems)
     trigger = _parse_trigger(tables, hardware, problems)
+    _check_timing(cameras, trigger, problems)
     live_vals = _fields("live", tables.get("live", {}), LIVE_KEYS, problems)
     if "port" in live_vals and not 0 < live_vals["port"] < 65536:
         problems.add(f"live.port: must be between 1 and 65535, got {live_vals.pop('port')}")
@@ -300,6 +301,29 @@ def _parse_trigger(tables: dict, hardware: list[str], problems: _Problems) -> Op
     if t.get("sim"):
         _check_sim_options("trigger.sim", t["sim"], "trigger", problems)
     return TriggerConfig(**t) if len(problems.lines) == before else None
+
+
+def _check_timing(cameras: list[CameraConfig], trigger: Optional[TriggerConfig], problems: _Problems) -> None:
+    """An exposure must end before the next frame starts: longer than the trigger's period (or a
+    free-running camera's frame time) every other pulse finds the camera busy and its frame is lost;
+    the trigger's pulse must end before its next one."""
+    if trigger is not None:
+        period_us = 1e6 / trigger.rate_hz
+        if trigger.pulse_width_us is not None and trigger.pulse_width_us >= period_us:
+            problems.add(f"trigger.pulse_width_us: {trigger.pulse_width_us:g} us is not shorter than the pulse period "
+                         f"({period_us:g} us at {trigger.rate_hz:g} Hz)")
+    for i, cam in enumerate(cameras):
+        if cam.exposure_us is None:
+            continue
+        if cam.trigger == "hardware" and trigger is not None:
+            period_us, what = 1e6 / trigger.rate_hz, f"the trigger's period ({1e6 / trigger.rate_hz:g} us at {trigger.rate_hz:g} Hz)"
+        elif cam.fps:
+            period_us, what = 1e6 / cam.fps, f"its frame time ({1e6 / cam.fps:g} us at {cam.fps:g} fps)"
+        else:
+            continue
+        if cam.exposure_us >= period_us:
+            problems.add(f"cameras[{i}] ('{cam.name}').exposure_us: {cam.exposure_us:g} us is not shorter than {what}; "
+                         "every other frame would be lost")
 
 
 def _check_sim_options(where: str, table: dict, kind: str, problems: _Problems) -> None:

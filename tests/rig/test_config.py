@@ -257,3 +257,21 @@ def test_configuration_doc_lists_every_simulator_option():
     for kind, spec in OPTIONS.items():
         for key in spec:
             assert f"| `{key}` |" in doc, (kind, key)
+
+
+def test_an_exposure_or_pulse_longer_than_the_frame_period_is_refused(tmp_path):
+    """A trial found `exposure_us = 200000` at 30 Hz accepted: the take then lost most frames, and
+    1e12 never ended."""
+    hardware = GOOD.replace('name = "right"\nuri = "sim://right"', 'name = "right"\nuri = "sim://right"\ntrigger = "hardware"\nexposure_us = 40000')
+    problems = {
+        "left": (GOOD.replace("exposure_us = 5000", "exposure_us = 40000"), "cameras[0] ('left').exposure_us: 40000 us is not shorter than its frame time (33333.3 us at 30 fps)"),
+        "right": (hardware, "cameras[1] ('right').exposure_us: 40000 us is not shorter than the trigger's period (33333.3 us at 30 Hz)"),
+        "pulse": (GOOD.replace("rate_hz = 30", "rate_hz = 30\npulse_width_us = 1e9"), "trigger.pulse_width_us: 1e+09 us is not shorter than the pulse period"),
+    }
+    for name, (text, fragment) in problems.items():
+        path = tmp_path / f"{name}.toml"
+        path.write_text(text)
+        assert_one_line_error(run_rig("config", "check", path), fragment)
+    path = tmp_path / "fine.toml"
+    path.write_text(GOOD.replace("exposure_us = 5000", "exposure_us = 33000"))
+    assert run_rig("config", "check", path).returncode == 0
