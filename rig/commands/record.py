@@ -80,7 +80,7 @@ def _validate(args) -> int:
         if len(v.errors) > 20:
             print(f"  ... and {len(v.errors) - 20} more errors")
     if not v.readable:
-        print(f"rig: error: {v.root}: {len(v.errors)} problems (first: {v.errors[0]}); "
+        print(f"rig: error: {v.root}: {len(v.errors)} problem{'s' if len(v.errors) > 1 else ''} (first: {v.errors[0]}); "
               f"`rig record repair` keeps every good set", file=sys.stderr)
         return 1
     return 0

@@ -14,6 +14,7 @@ from rig.storage.index import scan_index
 from rig.storage.layout import CALIBRATION_COPY, INDEX, CameraEntry, SequenceMeta
 from rig.storage.media import media_problems
 from rig.storage.netpbm import NetpbmError, read_netpbm
+from rig.storage.repair import frame_damage
 
 
 @dataclass
@@ -62,15 +63,12 @@ def frame_problem(root: Path, entries: dict[str, CameraEntry], row: dict, cam: s
         return f"set {row['set']}: unknown camera '{cam}'"
     if rec is None:
         return None
-    try:
-        size = (root / rec["file"]).stat().st_size
-    except FileNotFoundError:
-        return f"set {row['set']}: {rec['file']} is missing"
-    except OSError as exc:
-        return f"set {row['set']}: {rec['file']} cannot be read ({exc.strerror})"
-    if size != entries[cam].frame_bytes:
-        return f"set {row['set']}: {rec['file']} is torn ({size} of {entries[cam].frame_bytes} bytes)"
-    return None
+    # what `rig record repair` would mark missing: the same test (size, header, a file in the take)
+    damage = frame_damage(root, entries[cam], rec)
+    if damage is None:
+        return None
+    name = rec.get("file") if isinstance(rec, dict) else None
+    return f"set {row['set']}: {name or cam}: {damage}"
 
 
 def validate(root: str | Path, check_pixels: bool = False) -> Validation:

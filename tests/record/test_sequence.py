@@ -147,10 +147,10 @@ def test_a_damaged_image_header_is_reported_not_a_crash(tmp_path):
     rows = [json.loads(line) for line in (seq_dir / INDEX).read_text().splitlines()]
     image = seq_dir / rows[2]["frames"]["left"]["file"]
     data = image.read_bytes()
-    image.write_bytes(data.replace(b"64 48", b"6x 48", 1))  # same size: only decoding the pixels finds it
-    assert validate(seq_dir).readable
-    v = validate(seq_dir, check_pixels=True)
-    assert not v.readable and v.readable_sets == 2 and v.errors == [f"{image}: damaged PPM/PGM header"]
+    image.write_bytes(data.replace(b"64 48", b"6x 48", 1))  # same size: the header tells
+    rel = rows[2]["frames"]["left"]["file"]
+    for v in (validate(seq_dir), validate(seq_dir, check_pixels=True)):  # what repair marks missing (it passed)
+        assert not v.readable and v.readable_sets == 2 and v.errors == [f"set 2: {rel}: damaged image header"]
     with pytest.raises(SequenceError, match="damaged PPM/PGM header"):
         list(Sequence(seq_dir).samples(cameras=["left"]))
 
