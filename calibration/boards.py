@@ -212,6 +212,8 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
     if "type" not in d and ANIPOSE_KEYS & set(d):
         d = _from_anipose(d, where)
     kind = d.get("type")
+    if isinstance(kind, str):  # "ChArUco", "Chessboard": as other tools write them
+        kind = kind.strip().lower()
     if kind == "chessboard":
         allowed = {"type": None, "cols": int, "rows": int, "square_size": float, "margin": float, "inverted": bool}
     elif kind == "charuco":

@@ -17,7 +17,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from calibration.boards import BoardSpec
+from calibration.boards import BoardSpec, ChessboardSpec
 from calibration.camera import CalibrationError
 from calibration.detect import Corners, make_detector
 
@@ -228,6 +228,8 @@ def detect_images(
                 progress(done, total)
     if not any(corners.values()):
         tried = detector.tried() if hasattr(detector, "tried") else "the board file's board"
+        check = ("cols and rows count its inner corners (a board of 10 x 7 squares has 9 x 6)" if isinstance(board, ChessboardSpec)
+                 else "squares_x and squares_y count its squares, and its marker dictionary")
         raise CalibrationError(f"{images.root}: the board was not found in any of the {total} images (tried {tried}); "
-                               f"check the board's size, squares and dictionary in the board file")
+                               f"check the board file: {check}")
     return DetectionSet(sizes, corners, seen, sources)

@@ -72,7 +72,12 @@ def test_no_board_found_anywhere(tmp_path, charuco_file, capsys):
             cv2.imwrite(str(tmp_path / "imgs" / cam / f"{i:04d}.png"), np.full((120, 160), 90, np.uint8))
     rc, _, err = run(["calibrate", "run", "--images", str(tmp_path / "imgs"), "--board", str(charuco_file), "-o", str(tmp_path / "c.json")], capsys)
     assert rc == 2 and str(tmp_path / "imgs") in err and "not found in any of the 6 images" in err
+    assert "squares_x and squares_y count its squares, and its marker dictionary" in err
     assert not (tmp_path / "c.json").exists()
+    chess = tmp_path / "chess.toml"
+    chess.write_text('type = "Chessboard"\ncols = 10\nrows = 7\nsquare_size = 0.03\n')  # as other tools write the type
+    rc, _, err = run(["calibrate", "run", "--images", str(tmp_path / "imgs"), "--board", str(chess), "-o", str(tmp_path / "c.json")], capsys)
+    assert rc == 2 and "cols and rows count its inner corners (a board of 10 x 7 squares has 9 x 6)" in err
 
 
 def test_images_of_different_sizes_for_one_camera(tmp_path, charuco_file, capsys):
