@@ -21,6 +21,9 @@ import hashlib
 import json
 import math
 import os
+import signal
+import sys
+import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -395,8 +398,6 @@ class _StopRequests:
     see the request at different steps and wait for each other, so they keep the default handling."""
 
     def __init__(self, enabled: bool):
-        import threading
-
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
         self.requested = False
         self._previous: dict = {}
@@ -405,20 +406,14 @@ class _StopRequests:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        import sys
-
         print("\nrig train: stopping after this step, with a checkpoint (again to stop at once)", file=sys.stderr)
 
     def __enter__(self) -> "_StopRequests":
         if self.enabled:
-            import signal
-
             self._previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
         return self
 
     def __exit__(self, *exc) -> None:
-        import signal
-
         for s, handler in self._previous.items():
             signal.signal(s, handler)
 

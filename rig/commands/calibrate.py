@@ -251,8 +251,8 @@ def _unusable_message(rig, unusable: list[str], output) -> str:
     stalled = any("did not converge" in w for w in rig.meta["report"]["warnings"])
     return (f"the calibration is unusable: reprojection RMS {rms} (above {RMS_UNUSABLE_PX:g} px)"
             f"{'; the joint adjustment did not converge' if stalled else ''}; nothing was written to {output}. "
-            "Check that the board file describes the board shown (cols and rows count inner corners, "
-            "in the board's orientation) and that every camera's images of one instant share a name or number")
+            "Check that the board file describes the board shown (its size, in the board's orientation) "
+            "and that every camera's images of one instant share a name or number")
 
 
 def save_keeping(rig, output: Path) -> tuple[Path | None, str | None]:

@@ -188,6 +188,7 @@ class LiveEngine:
         self.rig = rig
         self.left, self.right = rig[left], rig[right]
         self.sources = (left, right)
+        self._presets = presets(rig, self.sources)  # the rig is fixed for the engine's life: once, not per viewer
         self.model = model
         self.sizes = model.sizes
         self.output_size = tuple(self.sizes.output)
@@ -281,7 +282,7 @@ class LiveEngine:
             self._viewers.pop(viewer.id, None)
 
     def presets(self) -> list[dict]:
-        return presets(self.rig, self.sources)
+        return [dict(p) for p in self._presets]
 
     def snapshot(self, message: Optional[dict] = None, timeout: float = 5.0) -> Optional[bytes]:
         viewer = self.add_viewer(message or DEFAULT_VIEW, internal=True, png=True)
