@@ -24,7 +24,7 @@ def register(sub) -> None:
                                    "depth refinement, colour blending, Gaussian plane) on one or more sequences.")
     p.add_argument("sequences", nargs="+", type=Path,
                    help="sequence folders (from rig record or rig sim dataset); a data-set folder stands for all its takes")
-    p.add_argument("-o", "--out", required=True, type=Path, help="output folder (new, or the run to continue with --resume)")
+    p.add_argument("-o", "--out", required=True, type=Path, help="output folder (new or empty, or the run to continue with --resume; Ctrl-C or SIGTERM end the step under way and write the checkpoint)")
     p.add_argument("--config", type=Path, help="training configuration (JSON, the keys of inference.train.config.TrainConfig)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     p.add_argument("--init", type=Path, metavar="CKPT",
