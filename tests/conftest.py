@@ -37,8 +37,16 @@ def pytest_configure(config):
 def pytest_collection_modifyitems(session, config, items):
     """The long tests (marked slow) first: pytest-xdist hands out the files in this order, so the
     longest start at once and the short ones fill in around them, instead of one long file running
-    alone at the end."""
+    alone at the end. Tests marked cuda skip, saying why, where torch sees no GPU."""
     items.sort(key=lambda item: 0 if item.get_closest_marker("slow") else 1)
+    if any(item.get_closest_marker("cuda") for item in items):
+        import torch
+
+        if not torch.cuda.is_available():
+            why = "no CUDA GPU: torch was built without CUDA" if torch.version.cuda is None else "no CUDA GPU: torch sees none"
+            for item in items:
+                if item.get_closest_marker("cuda"):
+                    item.add_marker(pytest.mark.skip(reason=why))
 
 
 def pytest_unconfigure(config):
