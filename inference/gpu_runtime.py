@@ -31,7 +31,7 @@ The exact API the GPU check builds on:
 - `.source_feeds(...)`, `.stage1(feeds) -> dict`, `.view(s1, feeds, target_K, target_pose) ->
   (image, depth)` numpy (1,3,H,W), (1,1,H,W); `.render(s1, feeds, camera) -> TorchView`.
 - `.stage1_ms`, `.view_ms`: wall ms of the latest call, the device synchronised at both ends.
-- `.describe()`: what `/status` says of the runtime ({"kind": "torch", "device", "gpu", "graphs", ...}).
+- `.runtime_status()` (also `.describe()`): what `/status` says of the runtime ({"kind": "torch", "device", "gpu", "graphs", ...}).
 - `parity(model, device, size, *, compile=False, seed=0, timeout=600) -> dict` of max abs diffs.
 
 How the graphs are made: the two stage functions are compiled with `torch.compile` (Inductor), run
@@ -415,13 +415,15 @@ class TorchLivePipeline:
         now = time.perf_counter()
         return now if start is None else (now - start) * 1000.0
 
-    def describe(self) -> dict:
-        """The runtime as /status and --json say it."""
+    def runtime_status(self) -> dict:
+        """The runtime as /status and --json say it (rig.live.api.runtime_of)."""
         out = {"kind": "torch", **describe_device(self.device), "graphs": self._state, "tf32": self.tf32,
                "checkpoint": str(self.checkpoint), "sizes": self.sizes.describe(), "backbone": self.cfg.backbone.kind}
         if self.compile_s is not None:
             out["compile_s"] = round(self.compile_s, 1)
         return out
+
+    describe = runtime_status
 
 
 def _plain(fn: Callable) -> Callable:

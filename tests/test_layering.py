@@ -5,7 +5,9 @@
 - `rig` reaches the simulator only through the `sim://` backend (`rig/cameras/sim.py`) and the
   simulator's own commands (`rig demo`, `rig sim`).
 - The live path (camera backends, capture, storage, live server, config, inference.runtime) never
-  imports torch or the export tool chain, directly or through anything it imports.
+  imports torch or the export tool chain, directly or through anything it imports; the one exception
+  is `rig live --device cuda`, whose torch GPU runtime (inference.gpu_runtime) rig.live.app imports
+  inside the function that chooses it, never at module level.
 - No import cycles between modules.
 
 The checks are plain functions over an import graph; the last tests feed them a small tree with a
@@ -26,6 +28,8 @@ LAYER = {"common": 0, "calibration": 1, "sync": 1, "simulator": 2, "inference": 
 SIMULATOR_GATES = ("rig.cameras.sim", "rig.commands.demo", "rig.commands._demo_gopro", "rig.commands.sim")
 LIVE_PATH = ("rig.cameras", "rig.capture", "rig.storage", "rig.live", "rig.config", "rig.errors", "inference.runtime")
 HEAVY = ("torch", "torchvision", "onnx", "onnxscript")  # training and export only
+# (importer, imported): lazy imports (inside a function) of the live path that may reach torch.
+LAZY_GPU_IMPORTS = {("rig.live.app", "inference.gpu_runtime")}
 
 
 @dataclass
@@ -33,6 +37,8 @@ class Graph:
     # module -> {imported project module or third-party top-level name: first line that imports it}
     imports: dict[str, dict[str, int]] = field(default_factory=dict)
     files: dict[str, Path] = field(default_factory=dict)
+    # module -> the imports it makes only inside functions (run when called, not when imported)
+    lazy: dict[str, set[str]] = field(default_factory=dict)
 
 
 def _module_name(root: Path, path: Path) -> str:
@@ -72,7 +78,11 @@ def read_graph(root: Path, packages=PACKAGES) -> Graph:
     for mod, path in graph.files.items():
         is_pkg = path.name == "__init__.py"
         found: dict[str, int] = {}
-        for node in _runtime_nodes(ast.parse(path.read_text(), str(path))):
+        tree = ast.parse(path.read_text(), str(path))
+        in_functions = {id(n) for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+                        for n in ast.walk(f) if isinstance(n, (ast.Import, ast.ImportFrom))}
+        eager: set[str] = set()
+        for node in _runtime_nodes(tree):
             names: list[str] = []
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
@@ -87,7 +97,10 @@ def read_graph(root: Path, packages=PACKAGES) -> Graph:
                 target = _resolve(name, modules) or name.split(".")[0]
                 if target != mod:
                     found.setdefault(target, node.lineno)
+                    if id(node) not in in_functions:
+                        eager.add(target)
         graph.imports[mod] = found
+        graph.lazy[mod] = set(found) - eager
     return graph
 
 
@@ -117,8 +130,9 @@ def simulator_gate_violations(graph: Graph) -> list[str]:
             for target, line in targets.items() if _package(target) == "simulator"]
 
 
-def heavy_on_live_path(graph: Graph) -> list[str]:
-    """Modules of the live path that reach torch/onnx, with the chain of imports that gets there."""
+def heavy_on_live_path(graph: Graph, allowed=LAZY_GPU_IMPORTS) -> list[str]:
+    """Modules of the live path that reach torch/onnx, with the chain of imports that gets there;
+    an `allowed` (importer, imported) pair is not followed when the import is inside a function."""
     out = []
     for start in sorted(m for m in graph.imports if _within(m, LIVE_PATH)):
         seen = {start: [start]}
@@ -126,6 +140,8 @@ def heavy_on_live_path(graph: Graph) -> list[str]:
         while todo:
             mod = todo.pop()
             for target in graph.imports.get(mod, {}):
+                if (mod, target) in allowed and target in graph.lazy.get(mod, ()):
+                    continue
                 if target in HEAVY:
                     out.append(f"{start} reaches {target}: {' -> '.join(seen[mod] + [target])}")
                 elif target in graph.imports and target not in seen:
@@ -237,6 +253,17 @@ def test_torch_reached_through_a_chain_from_the_live_path_is_caught(tmp_path):
                          "inference/helpers.py": "def f():\n    import torch\n"})
     found = heavy_on_live_path(g)
     assert found == ["inference.runtime.pipeline reaches torch: inference.runtime.pipeline -> inference.helpers -> torch"]
+
+
+def test_the_gpu_runtime_is_allowed_only_as_the_lazy_import_of_the_live_app(tmp_path):
+    gpu = "def f():\n    import torch\n"
+    lazy = "def open_model():\n    from inference import gpu_runtime\n"
+    g = _tree(tmp_path / "lazy", {"inference/gpu_runtime.py": gpu, "rig/live/app.py": lazy})
+    assert heavy_on_live_path(g) == []
+    g = _tree(tmp_path / "eager", {"inference/gpu_runtime.py": gpu, "rig/live/app.py": "from inference import gpu_runtime\n"})
+    assert heavy_on_live_path(g) == ["rig.live.app reaches torch: rig.live.app -> inference.gpu_runtime -> torch"]
+    g = _tree(tmp_path / "other", {"inference/gpu_runtime.py": gpu, "rig/live/engine.py": lazy})
+    assert heavy_on_live_path(g) == ["rig.live.engine reaches torch: rig.live.engine -> inference.gpu_runtime -> torch"]
 
 
 def test_an_import_cycle_is_caught(tmp_path):

@@ -26,7 +26,15 @@ def register(sub) -> None:
     p.add_argument("--record-view", default="0.5", metavar="t|CAMERA", help="the viewpoint --record-output records: 0..1 from left to right, or a camera name (default 0.5)")
     p.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
     p.add_argument("--threads", type=int, help="ONNX Runtime threads per model run (default: all cores)")
-    p.add_argument("--providers", nargs="+", help="ONNX Runtime execution providers, best first (default: TensorRT, CUDA, CPU as installed)")
+    p.add_argument("--providers", nargs="+", help="ONNX Runtime execution providers, best first (default: TensorRT, CUDA, CPU as installed); "
+                                                   "CUDAExecutionProvider and TensorrtExecutionProvider need onnxruntime-gpu (docs/live.md, GPU)")
+    p.add_argument("--device", default="cpu", metavar="cpu|cuda[:N]",
+                   help="cpu (default): the exported ONNX model in ONNX Runtime, torch-free; cuda: the checkpoint behind the model "
+                        "in torch on the GPU, stage 1 and the view as CUDA graphs (eager frames while they compile)")
+    p.add_argument("--size", choices=("paper", "preview", "test"),
+                   help="with --device cuda: the size preset the model runs at (default paper: 512x288 / 1024x576 -> 1280x720)")
+    p.add_argument("--no-compile", dest="compile", action="store_false",
+                   help="with --device cuda: eager only, no CUDA graphs (no compile time; slower)")
     p.add_argument("--jpeg-quality", type=int, default=85, help="JPEG quality of the served frames (default 85)")
     p.add_argument("--json", action="store_true", help="print one JSON object when the server stops (stderr: notes and errors)")
     p.set_defaults(func=cmd_live)
@@ -66,7 +74,8 @@ def cmd_live(args: argparse.Namespace) -> int:
     notes = Notes(quiet=False)
     app = LiveApp.build(cfg, model=args.model, calibration=args.calibration, replay=args.replay,
                         record_output=args.record_output, record_view=view_message(args.record_view),
-                        threads=args.threads, providers=args.providers, jpeg_quality=args.jpeg_quality, notes=notes)
+                        threads=args.threads, providers=args.providers, jpeg_quality=args.jpeg_quality, notes=notes,
+                        device=args.device, size=args.size, compile=args.compile)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with app:

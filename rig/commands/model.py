@@ -112,6 +112,10 @@ def register(subparsers) -> None:
     r.add_argument("--pitch", type=float, help="orbit up (positive) or down, degrees")
     r.add_argument("--zoom", type=float, help="focal-length multiplier (0.5 to 3)")
     r.add_argument("--providers", help="comma-separated ONNX Runtime providers (default: best installed)")
+    r.add_argument("--device", default="cpu", metavar="cpu|cuda[:N]",
+                   help="cpu (default): the exported model in ONNX Runtime; cuda: the checkpoint behind it in torch on the GPU "
+                        "(the runtime of `rig live --device cuda`, eager)")
+    r.add_argument("--size", choices=SIZES, help="with --device cuda: the size preset to render at (default: the model's own)")
     r.add_argument("-o", "--output", required=True, metavar="FILE",
                    help="the image (.png, .jpg) for --view, the video (.mp4, .mkv, .mov) for --orbit; replaced if it exists")
     r.add_argument("--json", action="store_true", help="print one JSON object: output, model, sequence, sets, viewpoints, size, codec, ms")
@@ -500,6 +504,16 @@ def _parse_view(args: argparse.Namespace, view: str | float, rig, sources):
         raise ConfigError(f"--view {view}: {exc}") from None
 
 
+def _two_part_render(pipe):
+    """NovelViewPipeline.render's call for a two-part runtime: stage 1 then the view (ms: both)."""
+    def render(left, right, left_cam, right_cam, target, left_depth=None, right_depth=None):
+        feeds = pipe.source_feeds(left, right, left_cam, right_cam)
+        view = pipe.render(pipe.stage1(feeds), feeds, target)
+        view.ms = pipe.stage1_ms + pipe.view_ms
+        return view
+    return render
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     import statistics
 
@@ -544,19 +558,34 @@ def cmd_render(args: argparse.Namespace) -> int:
         if missing:
             raise ConfigError(f"--set {p}: frame set {p} of {seq.root} has no frame of {' and '.join(missing)} (a dropped frame); choose another set")
 
-    from inference.runtime import NovelViewPipeline
+    from rig.live.app import parse_device
 
-    model = args.model
-    if model is None:
-        from inference.runtime.shipped import shipped_onnx
+    device = parse_device(args.device)
+    if device != "cpu":
+        if args.providers:
+            raise ConfigError(f"--providers is for ONNX Runtime (--device cpu); --device {device} renders in torch")
+        from rig.live.app import gpu_runtime
 
-        try:
-            model = shipped_onnx()
-        except InferenceError:
-            raise ConfigError("no shipped model in this installation (models/splat-sap-preview.onnx); "
-                              "name one with --model M.onnx (rig model export)") from None
-    pipe = NovelViewPipeline(model, providers=_providers(args.providers))
-    needs_depth = pipe.info.needs_depth
+        pipe = gpu_runtime(device).TorchLivePipeline(args.model, device, args.size, compile=False)
+        render = _two_part_render(pipe)
+        needs_depth = False  # the GPU runtime refuses an oracle model
+    else:
+        if args.size is not None:
+            raise ConfigError("--size is for --device cuda (the ONNX model's sizes are fixed at export)")
+        from inference.runtime import NovelViewPipeline
+
+        model = args.model
+        if model is None:
+            from inference.runtime.shipped import shipped_onnx
+
+            try:
+                model = shipped_onnx()
+            except InferenceError:
+                raise ConfigError("no shipped model in this installation (models/splat-sap-preview.onnx); "
+                                  "name one with --model M.onnx (rig model export)") from None
+        pipe = NovelViewPipeline(model, providers=_providers(args.providers))
+        render = pipe.render
+        needs_depth = pipe.info.needs_depth
     if needs_depth and not seq.has_ground_truth():
         raise ConfigError(f"{model}: an oracle model reads ground-truth depth, which only simulator takes have; render a trained model")
     size = tuple(pipe.sizes.output)
@@ -568,8 +597,8 @@ def cmd_render(args: argparse.Namespace) -> int:
             status.update(f"rendering {i + 1}/{len(positions)} (set {p}, {vp.label()}) ...", force=True)
             sample = seq.sample(p, [left, right], with_depth=needs_depth)
             target = vp.camera(rig, size, sources=sources)
-            view = pipe.render(sample.images[left], sample.images[right], sample.cameras[left], sample.cameras[right], target,
-                               sample.depth.get(left), sample.depth.get(right))
+            view = render(sample.images[left], sample.images[right], sample.cameras[left], sample.cameras[right], target,
+                          sample.depth.get(left), sample.depth.get(right))
             times.append(view.ms)
             yield view.image_uint8()
 
@@ -596,7 +625,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         "output": str(out),
         "kind": "video" if args.orbit else "image",
         "model": str(pipe.path),
-        "providers": pipe.providers,
+        "providers": getattr(pipe, "providers", None),
+        "runtime": pipe.runtime_status() if device != "cpu" else {"kind": "onnxruntime", "providers": pipe.providers},
         "sequence": str(seq.root),
         "sets": positions,
         "sources": list(sources),

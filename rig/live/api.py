@@ -51,8 +51,26 @@ class Engine(Protocol):
 
     def status(self) -> dict:
         """JSON-able figures: fps in/out, model ms per stage, latency percentiles, drops, camera
-        and trigger health (`health`: {"ok": bool, "messages": [str, ...]})."""
+        and trigger health (`health`: {"ok": bool, "messages": [str, ...]}), and where the model
+        runs (`runtime`, see `runtime_of`)."""
 
     def snapshot(self, message: Optional[dict] = None, timeout: float = 5.0) -> Optional[bytes]:
         """A PNG of the newest frame set at a viewpoint (default: halfway); None if no frame set
         arrived within `timeout`."""
+
+
+# ONNX Runtime's providers that run on an NVIDIA GPU (onnxruntime-gpu, or NVIDIA's build on a Jetson).
+GPU_PROVIDERS = {"CUDAExecutionProvider": "cuda", "TensorrtExecutionProvider": "cuda"}
+
+
+def runtime_of(model) -> dict:
+    """Where and how the live model runs, as /status says it: the torch GPU runtime describes itself
+    ({"kind": "torch", "device": "cuda:0", "gpu": ..., "graphs": "compiling" | "compiled" | "eager ..."});
+    an ONNX Runtime model is {"kind": "onnxruntime", "device": "cpu" | "cuda", "providers": [...]}, its
+    device the one its first provider runs on (ONNX Runtime puts a layer its first provider cannot
+    run on the next)."""
+    own = getattr(model, "runtime_status", None)
+    if callable(own):
+        return own()
+    providers = list(getattr(model, "providers", None) or [])
+    return {"kind": "onnxruntime", "device": GPU_PROVIDERS.get(providers[0], "cpu") if providers else "cpu", "providers": providers}

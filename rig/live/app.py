@@ -47,21 +47,75 @@ def rig_calibration(cfg, calibration: Optional[Path], replay: Optional[ReplaySou
     raise ConfigError(f"{cfg.path or 'config'}: no calibration (set rig.calibration, or give --calibration; `rig calibrate run` makes one)")
 
 
-def open_model(path: Optional[Path], providers, threads):
+DEVICES = ("cpu", "cuda")
+
+
+def parse_device(text: str) -> str:
+    """--device: cpu (ONNX Runtime, the default), cuda or cuda:N (the torch GPU runtime). Checked
+    without torch: a wrong word is one line before anything is opened."""
+    t = (text or "cpu").strip().lower()
+    kind, _, index = t.partition(":")
+    if kind not in DEVICES or (kind == "cpu" and index) or (index and not index.isdigit()):
+        raise ConfigError(f"--device: {text!r} is not a device (give cpu, cuda or cuda:N)")
+    return t
+
+
+def check_providers(providers) -> None:
+    """--providers: each an ONNX Runtime execution provider this installation has (one line if not)."""
+    if not providers:
+        return
+    import onnxruntime as ort
+
+    known, have = ort.get_all_providers(), ort.get_available_providers()
+    for p in providers:
+        if p not in known:
+            raise ConfigError(f"--providers: {p!r} is not an ONNX Runtime execution provider (this onnxruntime has: {', '.join(have)})")
+        if p not in have:
+            raise ConfigError(f"--providers: {p} is not in this onnxruntime {ort.__version__} (it has: {', '.join(have)}); "
+                              "the CUDA and TensorRT providers come with the onnxruntime-gpu package (on a Jetson, NVIDIA's build)")
+
+
+def gpu_runtime(device: str):
+    """The torch GPU runtime module, imported here only (the CPU live path never loads torch), and
+    the device checked: no torch, or no GPU, is one line."""
+    try:
+        from inference import gpu_runtime as module  # the one import of torch on the live path (tests/test_layering.py)
+    except ImportError as exc:
+        raise ConfigError(f"--device {device}: the GPU runtime needs PyTorch, which this installation lacks ({exc}); "
+                          "run --device cpu (ONNX Runtime, also on a GPU with --providers)") from None
+    module.resolve_device(device)  # InferenceError, one line: no CUDA in this torch, no GPU, no such index
+    return module
+
+
+def open_model(path: Optional[Path], providers, threads, device: str = "cpu", size: Optional[str] = None, compile: bool = True):
     """The model as its two parts (stage 1 once per frame set, the view per viewer); default: the
-    shipped trained model."""
+    shipped trained model. `device` cpu: ONNX Runtime on `providers`; cuda: the torch runtime
+    (inference.gpu_runtime) on the checkpoint behind the model, at `size` (default the paper's),
+    its CUDA graphs built in the background while it serves eager frames."""
+    if path is not None and not Path(path).is_file():
+        raise ConfigError(f"--model: {path}: no such model file")
+    if device != "cpu":
+        module = gpu_runtime(device)
+        model = module.TorchLivePipeline(path, device, size or module.LIVE_SIZE, compile=compile)
+        return model.warm()
     from inference.runtime import SplitPipeline
 
     if path is None:
         from inference.runtime.shipped import shipped_onnx
 
         path = shipped_onnx()
-    if not Path(path).is_file():
-        raise ConfigError(f"--model: {path}: no such model file")
+    check_providers(providers)
     model = SplitPipeline(path, providers=providers, threads=threads)
     if model.info.needs_depth:
         raise ConfigError(f"{path}: this model uses the oracle backbone (ground-truth depth as input); live needs a model that sees only the images")
     return model
+
+
+def _runtime_line(r: dict) -> str:
+    where = f"model on {r['device']}{' (' + r['gpu'] + ')' if r.get('gpu') else ''} in torch at {r.get('sizes', {}).get('output', '?')}"
+    if r["graphs"] == "compiling":
+        return where + "; CUDA graphs compiling in the background, eager frames until they are ready (/status runtime.graphs)"
+    return f"{where}; {r['graphs']}"
 
 
 class LiveApp:
@@ -73,7 +127,17 @@ class LiveApp:
     @classmethod
     def build(cls, cfg, *, model: Optional[Path] = None, calibration: Optional[Path] = None, replay: Optional[Path] = None,
               record_output: Optional[Path] = None, record_view: Optional[dict] = None, threads: Optional[int] = None,
-              providers=None, jpeg_quality: int = 85, notes=None) -> "LiveApp":
+              providers=None, jpeg_quality: int = 85, notes=None, device: str = "cpu", size: Optional[str] = None,
+              compile: bool = True) -> "LiveApp":
+        device = parse_device(device)
+        if device != "cpu":
+            for flag, value in (("--providers", providers), ("--threads", threads)):
+                if value:
+                    raise ConfigError(f"{flag} is for ONNX Runtime (--device cpu); --device {device} runs the torch GPU runtime")
+            gpu_runtime(device)  # no torch or no GPU: one line before the source and the calibration are opened
+        elif size is not None or not compile:
+            raise ConfigError(f"{'--size' if size is not None else '--no-compile'} is for --device cuda "
+                              "(the ONNX model's sizes are fixed at export; ONNX Runtime builds no CUDA graphs)")
         left, right = source_cameras(cfg)
         replayed = ReplaySource(replay, left, right) if replay is not None else None
         said: list[str] = []  # notes are printed once everything opened: a bad input stays one line
@@ -81,7 +145,7 @@ class LiveApp:
         for name in (left, right):
             if name not in rig:
                 raise ConfigError(f"calibration has no camera '{name}' (it has: {', '.join(rig.names)})")
-        live_model = open_model(model, providers, threads)
+        live_model = open_model(model, providers, threads, device, size, compile)
         recorder = None
         if record_output is not None:
             from rig.live.video import VideoWriter
@@ -93,6 +157,8 @@ class LiveApp:
             if not record_output.parent.is_dir():
                 raise ConfigError(f"--record-output: {record_output.parent}: no such folder")
             recorder = VideoWriter(record_output, fps=cfg.trigger.rate_hz if cfg.trigger else 30.0)
+        if device != "cpu":
+            said.append(_runtime_line(live_model.runtime_status()))
         for line in said:
             if notes is not None:
                 notes(line)

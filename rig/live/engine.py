@@ -28,7 +28,7 @@ import numpy as np
 
 from calibration.camera import CameraModel, RigCalibration
 from rig.cameras.pixels import rgb8
-from rig.live.api import LiveFrame
+from rig.live.api import LiveFrame, runtime_of
 from rig.live.viewpoint import Viewpoint, parse_viewpoint, presets
 
 log = logging.getLogger(__name__)
@@ -317,6 +317,7 @@ class LiveEngine:
             "viewers": [v.describe() for v in viewers],
             "health": health,
             "model": {"path": str(getattr(self.model, "path", "")), "sizes": self.sizes.describe()},
+            "runtime": runtime_of(self.model),
         }
 
     # --- threads ----------------------------------------------------------------------------------
