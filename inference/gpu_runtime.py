@@ -281,11 +281,12 @@ class TorchLivePipeline:
     def warm(self, background: bool = True) -> "TorchLivePipeline":
         """One eager run on the synthetic inputs (memory, cuDNN's choices: the first viewer does not
         pay them), then the graphs are built: in a thread (`background`), eager calls meanwhile."""
-        feeds, target_K, target_pose = self.synthetic()
-        with self._lock, torch.no_grad():
-            s1 = self._stage1_eager(*self._sources(feeds))
-            self._view_eager(*s1, *self._sources(feeds), target_K, target_pose)
-            synchronize(self.device)
+        if self.device.type == "cuda":  # the CPU has nothing to set up that a first run would do
+            feeds, target_K, target_pose = self.synthetic()
+            with self._lock, torch.no_grad():
+                s1 = self._stage1_eager(*self._sources(feeds))
+                self._view_eager(*s1, *self._sources(feeds), target_K, target_pose)
+                synchronize(self.device)
         if self._compile and self._thread is None and self._graphs is None and self._state == "compile not started":
             self._set_state("compiling")
             if background:
@@ -316,14 +317,14 @@ class TorchLivePipeline:
             # Compiling happens on the first calls, outside the lock: eager frames go on meanwhile.
             with torch.no_grad():
                 s1 = tuple(t.clone() for t in stage1_fn(*sources))
-                view_fn(*s1, *sources, target_K, target_pose)
+                got = view_fn(*s1, *sources, target_K, target_pose)[0]
             if self.device.type == "cuda":
-                with self._lock:
+                with self._lock, torch.no_grad():
                     graphs = {"stage1": _Graph(stage1_fn, sources), "view": _Graph(view_fn, s1 + sources + (target_K, target_pose))}
+                    got = graphs["view"](*graphs["stage1"](*sources), *sources, target_K, target_pose)[0]  # what replays give
             else:  # no CUDA graphs on the CPU: the compiled functions themselves (how the tests run this path)
                 graphs = {"stage1": _plain(stage1_fn), "view": _plain(view_fn)}
             with self._lock, torch.no_grad():
-                got = graphs["view"](*graphs["stage1"](*sources), *sources, target_K, target_pose)[0]
                 want = self._view_eager(*self._stage1_eager(*sources), *sources, target_K, target_pose)[0]
                 diff = float((got - want).abs().max())
             if not diff <= self.check_tolerance:
