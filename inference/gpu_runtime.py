@@ -208,18 +208,20 @@ class _Graph:
     """One stage function captured as a CUDA graph over static input and output buffers."""
 
     def __init__(self, fn: Callable, example: tuple[torch.Tensor, ...]):
+        device = example[0].device
         self.inputs = tuple(t.clone() for t in example)
-        # Warm-up on a side stream before capture, as torch.cuda.graphs asks: kernels load and
-        # cuDNN chooses its algorithms outside the graph.
-        stream = torch.cuda.Stream(device=self.inputs[0].device)
-        stream.wait_stream(torch.cuda.current_stream(self.inputs[0].device))
-        with torch.cuda.stream(stream), torch.no_grad():
-            for _ in range(2):
-                fn(*self.inputs)
-        torch.cuda.current_stream(self.inputs[0].device).wait_stream(stream)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.no_grad(), torch.cuda.graph(self.graph):
-            self.outputs = tuple(fn(*self.inputs))
+        with torch.cuda.device(device), torch.no_grad():
+            # Warm-up on a side stream before capture, as torch.cuda.graphs asks: kernels load and
+            # cuDNN chooses its algorithms outside the graph.
+            stream = torch.cuda.Stream(device=device)
+            stream.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(stream):
+                for _ in range(2):
+                    fn(*self.inputs)
+            torch.cuda.current_stream(device).wait_stream(stream)
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph):
+                self.outputs = tuple(fn(*self.inputs))
 
     def __call__(self, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
         for buf, a in zip(self.inputs, args):
@@ -368,7 +370,8 @@ class TorchLivePipeline:
             arrays = self.prepare(left, right, left_cam, right_cam, left_cam)
         except InferenceError as exc:
             raise InferenceError(f"{self.path}: {exc}") from None
-        return {n: self._upload(arrays[n]) for n in SOURCE_NAMES}
+        with self._lock:  # the engine prepares sets in its capture thread: never during a capture
+            return {n: self._upload(arrays[n]) for n in SOURCE_NAMES}
 
     def target(self, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
         return intrinsics(camera, self.sizes.output), pose(camera)
