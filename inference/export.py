@@ -10,7 +10,8 @@ Beside M.onnx the export writes the same graph cut in two (inference.runtime.spl
 do not depend on the target) and M.view.onnx (those tensors + the source inputs the later stages
 read + target_K, target_pose -> image, depth). The model is traced once, with the stage-1 tensors as
 extra graph outputs; the three files are cut out of that one graph, so the parts compute exactly
-what the whole file computes.
+what the whole file computes. A model with the scale search also gets M.stage1_unscaled.onnx: stage 1
+without the search (a second trace with it off), for the live runtime to reuse the factor.
 
 Constant folding materialises the constant tensors the model builds (zeros_like, full_like, pixel
 grids) as initializers, which made a preview-size file nine times its weights. `slim_constants`
@@ -31,7 +32,7 @@ everything they need without torch:
     splat_sap.precision  fp32 | fp16
     splat_sap.weights    where the weights came from (JSON, see inference.model.checkpoint)
 The parts have the same keys (with their own inputs and outputs) and also
-    splat_sap.part       stage1 | view   (the whole file has no part key)
+    splat_sap.part       stage1 | view | stage1_unscaled   (the whole file has no part key)
 """
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ from inference.model.checkpoint import seed_record
 from inference.model.pipeline import INPUT_NAMES, OUTPUT_NAMES, STAGE1_OUTPUT_NAMES, SplatSAP
 from inference import onnx_weights
 from inference.onnx_weights import WeightStore, detach, has_detached, is_detached, write_models
-from inference.runtime.split import TARGET_INPUTS, part_path
+from inference.runtime.split import TARGET_INPUTS, UNSCALED_PART, part_path
 from inference.runtime.synthetic import example_inputs
 
 FORMAT_VERSION = "1"
@@ -79,7 +80,8 @@ class ExportResult:
     fp16_path: Path | None
     inputs: tuple[str, ...]
     opset: int
-    # The split files: M.stage1.onnx, M.view.onnx (then M.fp16.stage1.onnx, M.fp16.view.onnx with fp16).
+    # The split files: M.stage1.onnx, M.view.onnx (then M.fp16.stage1.onnx, M.fp16.view.onnx with fp16;
+    # last M.stage1_unscaled.onnx for a model with the scale search).
     parts: tuple[Path, ...] = ()
     # What the slimming did: {"replaced": initializers replaced, "bytes": their bytes,
     # "node_metadata_bytes": node metadata dropped}.
@@ -247,27 +249,7 @@ def export_onnx(
     model = model.eval()
     arrays = example_arrays(model, seed)
     names = model.input_names
-    args = tuple(torch.from_numpy(arrays[n]) for n in names)
-    # One trace of the whole pipeline with the stage-1 tensors as extra outputs: the whole file and
-    # both parts are cut out of this graph below.
-    model.export_stage1 = True
-    with torch.no_grad(), _quiet() as log:
-        try:
-            program = torch.onnx.export(
-                model, args, dynamo=True, opset_version=opset, input_names=list(names), output_names=list(OUTPUT_NAMES + STAGE1_OUTPUT_NAMES),
-                external_data=False, optimize=False,
-            )
-        except Exception as exc:  # the exporter raises many types; report one line with the cause
-            raise InferenceError(f"ONNX export failed: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}\n{log.getvalue()[-2000:]}") from exc
-        finally:
-            model.export_stage1 = False
-    if optimize:
-        program.optimize()
-    else:
-        _fold_constants(program.model)
-    traced = program.model_proto
-    slimmed = slim_constants(traced, keep={n for n, _ in model.named_parameters()})
-    slimmed["node_metadata_bytes"] = strip_node_metadata(traced)
+    traced, slimmed = _trace(model, arrays, opset, optimize)
     # From here the large initializers live in `store`, not in the protos (inference.onnx_weights):
     # a model over 2 GiB (the MASt3R backbone) cannot be one protobuf.
     store = detach(traced)
@@ -298,7 +280,63 @@ def export_onnx(
             halves.append((half, fp16_path if part is None else part_path(fp16_path, part)))
         data.append(write_models(halves, store, _save, external_data_limit))
         parts += [target for _, target in halves[1:]]
+    if _has_scale_search(model):
+        parts.append(_export_unscaled_stage1(model, arrays, opset, optimize, meta, path, external_data_limit))
     return ExportResult(path, fp16_path, names, opset, tuple(parts), slimmed, tuple(d for d in data if d is not None))
+
+
+def _trace(model: SplatSAP, arrays: dict[str, np.ndarray], opset: int, optimize: bool) -> tuple[onnx.ModelProto, dict]:
+    """One trace of the whole pipeline with the stage-1 tensors as extra outputs (the whole file and
+    both parts are cut out of this graph), constants folded and slimmed."""
+    names = model.input_names
+    args = tuple(torch.from_numpy(arrays[n]) for n in names)
+    model.export_stage1 = True
+    with torch.no_grad(), _quiet() as log:
+        try:
+            program = torch.onnx.export(
+                model, args, dynamo=True, opset_version=opset, input_names=list(names), output_names=list(OUTPUT_NAMES + STAGE1_OUTPUT_NAMES),
+                external_data=False, optimize=False,
+            )
+        except Exception as exc:  # the exporter raises many types; report one line with the cause
+            raise InferenceError(f"ONNX export failed: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}\n{log.getvalue()[-2000:]}") from exc
+        finally:
+            model.export_stage1 = False
+    if optimize:
+        program.optimize()
+    else:
+        _fold_constants(program.model)
+    traced = program.model_proto
+    slimmed = slim_constants(traced, keep={n for n, _ in model.named_parameters()})
+    slimmed["node_metadata_bytes"] = strip_node_metadata(traced)
+    return traced, slimmed
+
+
+def _has_scale_search(model: SplatSAP) -> bool:
+    cfg = model.cfg.stage1
+    return cfg.affine == "learned" and bool(cfg.scale_search)
+
+
+def _export_unscaled_stage1(model: SplatSAP, arrays: dict[str, np.ndarray], opset: int, optimize: bool, meta: dict[str, str],
+                            path: Path, external_data_limit: int) -> Path:
+    """M.stage1_unscaled.onnx: stage 1 without its last step, the scale search (the stage-1 tensors
+    before the factor; docs/model.md, "Scale search"). The factor is the same on every frame set of
+    a take, and the search is most of stage 1's time on a CPU: the live runtime finds it with the
+    whole stage 1 on some sets and scales this part's points by it on the others
+    (inference.runtime.split, `scale_every`). Its metadata is the model's own (the search is on in
+    its config), with splat_sap.part = stage1_unscaled."""
+    cfg = model.cfg.stage1
+    searched = cfg.scale_search
+    cfg.scale_search = 0  # AffineTransform reads it at every forward: the same weights, the search skipped
+    try:
+        traced, _ = _trace(model, arrays, opset, optimize)
+    finally:
+        cfg.scale_search = searched
+    store = detach(traced)
+    _, unscaled, _ = split_model(traced, model.input_names)
+    set_metadata(unscaled, _part_metadata(meta, UNSCALED_PART, unscaled))
+    target = part_path(path, UNSCALED_PART)
+    write_models([(unscaled, target)], store, _save, external_data_limit)
+    return target
 
 
 def _part_metadata(meta: dict[str, str], part: str | None, proto: onnx.ModelProto) -> dict[str, str]:

@@ -169,5 +169,11 @@ def model_from_record(cfg: ModelConfig, record: str, checkpoint: str | os.PathLi
         raise InferenceError(f"{checkpoint}: not the checkpoint the model was exported from (sha256 differs)")
     model = load_checkpoint(checkpoint)
     if model.cfg.to_dict() != cfg.to_dict():
-        raise InferenceError(f"{checkpoint}: its configuration differs from the ONNX model's")
+        if {**model.cfg.to_dict(), "sizes": None} != {**cfg.to_dict(), "sizes": None}:
+            raise InferenceError(f"{checkpoint}: its configuration differs from the ONNX model's")
+        # Exported at other sizes (`rig model export --checkpoint C --size S`, the CPU live model):
+        # the same weights built at the export's sizes, none of them depends on the sizes.
+        resized = build_model(cfg, seed=None)
+        load_weights(resized, model.state_dict(), checkpoint, strict=True)
+        model = resized.eval()
     return model

@@ -23,6 +23,7 @@ M.onnx computes.
 from __future__ import annotations
 
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -34,6 +35,8 @@ from inference.runtime.pipeline import ModelInfo, NovelView, open_session, read_
 from inference.runtime.preprocess import InputPreparer, intrinsics, pose
 
 PARTS = ("stage1", "view")
+# Stage 1 without its scale search, written beside a model that has the search (inference.export).
+UNSCALED_PART = "stage1_unscaled"
 TARGET_INPUTS = ("target_K", "target_pose")
 DEPTH_INPUTS = ("left_depth", "right_depth")  # the oracle backbone's, last in the whole model's inputs
 
@@ -41,8 +44,8 @@ DEPTH_INPUTS = ("left_depth", "right_depth")  # the oracle backbone's, last in t
 def part_path(path: str | os.PathLike, part: str) -> Path:
     """Where the export writes `part` ("stage1" or "view") of the model at `path`:
     M.onnx -> M.stage1.onnx, M.fp16.onnx -> M.fp16.stage1.onnx."""
-    if part not in PARTS:
-        raise InferenceError(f"unknown model part {part!r} (the parts are {', '.join(PARTS)})")
+    if part not in PARTS + (UNSCALED_PART,):
+        raise InferenceError(f"unknown model part {part!r} (the parts are {', '.join(PARTS + (UNSCALED_PART,))})")
     path = Path(path)
     return path.with_name(f"{path.stem}.{part}.onnx")
 
@@ -55,7 +58,10 @@ class SplitPipeline:
     at once; `stage1_ms` and `view_ms` are the wall times of the latest calls (`render` returns
     its own with the view)."""
 
-    def __init__(self, path: str | os.PathLike, providers: list[str] | None = None, threads: int | None = None):
+    def __init__(self, path: str | os.PathLike, providers: list[str] | None = None, threads: int | None = None, scale_every: int = 1):
+        """`scale_every` > 1: for a model with the scale search, run the whole stage 1 (the search
+        included) on one frame set in `scale_every` and reuse its factor on the sets between, with
+        stage 1 without the search (M.stage1_unscaled.onnx; see `stage1`). 1: every set searched."""
         self.path = Path(path)
         paths = {part: part_path(self.path, part) for part in PARTS}
         for part, p in paths.items():
@@ -88,6 +94,23 @@ class SplitPipeline:
         self.prepare = InputPreparer(self.sizes, self.info.needs_depth)
         self.stage1_ms = 0.0
         self.view_ms = 0.0
+        self.scale_every = max(1, int(scale_every))
+        self.unscaled_session = None
+        self._factor: float | None = None  # the scale search's factor on the last searched set
+        self._since_search = 0
+        self._scale_lock = threading.Lock()
+        self.sets_searched = 0  # stage 1 runs with the search
+        self.sets_scaled = 0  # stage 1 runs that reused the factor
+        if self.scale_every > 1 and self.info.config.stage1.scale_search and self.info.config.stage1.affine == "learned":
+            unscaled = part_path(self.path, UNSCALED_PART)
+            if unscaled.is_file():  # exports before it lack the part: every set is searched
+                self.unscaled_session = open_session(unscaled, providers, threads, spinning=False)
+                info = _part_info(self.unscaled_session, unscaled, UNSCALED_PART)
+                for key in ("splat_sap.config", "splat_sap.weights", "splat_sap.precision"):
+                    if info.metadata.get(key) != a.metadata.get(key):
+                        raise InferenceError(f"{unscaled.name} and {self.stage1_path.name} come from different exports ({key} differs); re-export the model with `rig model export`")
+                if info.inputs != a.inputs or info.outputs != a.outputs:
+                    raise InferenceError(f"{unscaled}: its inputs and outputs are not stage 1's; re-export the model with `rig model export`")
 
     @property
     def providers(self) -> list[str]:
@@ -114,9 +137,57 @@ class SplitPipeline:
         if missing:
             raise InferenceError(f"missing model inputs: {', '.join(missing)}")
         start = time.perf_counter()
-        out = self.stage1_session.run(list(self.stage1_outputs), {n: feeds[n] for n in self.stage1_info.inputs})
+        inputs = {n: feeds[n] for n in self.stage1_info.inputs}
+        if self.unscaled_session is None:
+            out = dict(zip(self.stage1_outputs, self.stage1_session.run(list(self.stage1_outputs), inputs)))
+        else:
+            out = self._stage1_reusing_factor(inputs)
         self.stage1_ms = (time.perf_counter() - start) * 1000.0
-        return dict(zip(self.stage1_outputs, out))
+        return out
+
+    def _stage1_reusing_factor(self, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Stage 1 with the scale search on one set in `scale_every`, its factor reused between.
+
+        The search is stage 1's last step: both point maps scaled by the factor k about their own
+        camera centres (inference.model.scale_search.rescale). On a searched set the whole stage 1
+        runs (its output is returned as it is), and so does the part without the search, whose
+        left points times k are the searched ones: k is their least-squares ratio (exact but for
+        float rounding, 5e-7 m). On the sets between, only the part without the search runs and
+        its points are scaled by that k here, as the model scales them."""
+        names = list(self.stage1_outputs)
+        with self._scale_lock:
+            search = self._factor is None or self._since_search >= self.scale_every
+            self._since_search = 1 if search else self._since_search + 1
+        unscaled = dict(zip(names, self.unscaled_session.run(names, inputs)))
+        left = unscaled["stage1_points_left"].astype(np.float64)
+        if search:
+            out = dict(zip(names, self.stage1_session.run(names, inputs)))
+            scaled = out["stage1_points_left"].astype(np.float64)
+            k = float((scaled * left).sum() / max(float((left * left).sum()), 1e-30))
+            with self._scale_lock:
+                self._factor = k
+                self.sets_searched += 1
+            return out
+        k = self._factor
+        # The right camera's centre in the left camera's frame (poses are world-to-camera).
+        right_to_left = inputs["left_pose"][0].astype(np.float64) @ np.linalg.inv(inputs["right_pose"][0].astype(np.float64))
+        centre = right_to_left[:3, 3].reshape(1, 3, 1, 1)
+        right = unscaled["stage1_points_right"].astype(np.float64)
+        unscaled["stage1_points_left"] = (left * k).astype(np.float32)
+        unscaled["stage1_points_right"] = (centre + (right - centre) * k).astype(np.float32)
+        with self._scale_lock:
+            self.sets_scaled += 1
+        return unscaled
+
+    def scale_status(self) -> dict | None:
+        """How stage 1 finds the scale factor (None: the model has no scale search)."""
+        cfg = self.info.config.stage1
+        if not (cfg.scale_search and cfg.affine == "learned"):
+            return None
+        every = self.scale_every if self.unscaled_session is not None else 1
+        return {"search_every": every, "factor": None if self._factor is None else round(self._factor, 5),
+                "sets_searched": self.sets_searched if self.unscaled_session is not None else None,
+                "sets_reusing": self.sets_scaled}
 
     def view(self, stage1_out: dict[str, np.ndarray], feeds: dict[str, np.ndarray], target_K: np.ndarray, target_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The view at (target_K (1, 3, 3) at the output size, target_pose (1, 4, 4) world-to-camera)

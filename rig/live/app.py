@@ -87,6 +87,11 @@ def gpu_runtime(device: str):
     return module
 
 
+# The scale search (most of stage 1's time on a CPU) runs on one frame set in this many; the sets
+# between reuse its factor, which is the same on every set of a take (docs/live.md, "On a CPU").
+SCALE_SEARCH_EVERY = 15
+
+
 def open_model(path: Optional[Path], providers, threads, device: str = "cpu", size: Optional[str] = None, compile: bool = True):
     """The model as its two parts (stage 1 once per frame set, the view per viewer); default: the
     shipped trained model. `device` cpu: ONNX Runtime on `providers`; cuda: the torch runtime
@@ -100,12 +105,15 @@ def open_model(path: Optional[Path], providers, threads, device: str = "cpu", si
         return model.warm()
     from inference.runtime import SplitPipeline
 
-    if path is None:
-        from inference.runtime.shipped import shipped_onnx
-
-        path = shipped_onnx()
     check_providers(providers)
-    model = SplitPipeline(path, providers=providers, threads=threads)
+    if path is None:
+        from inference.runtime.pipeline import available_providers
+        from inference.runtime.shipped import shipped_live_onnx, shipped_onnx
+
+        # On a CPU the preview model draws 0.3-0.7 frames/s on 2 cores: the shipped model at the
+        # live size instead (docs/live.md, "On a CPU"); with a GPU provider the preview model.
+        path = shipped_live_onnx() if available_providers(providers) == ["CPUExecutionProvider"] else shipped_onnx()
+    model = SplitPipeline(path, providers=providers, threads=threads, scale_every=SCALE_SEARCH_EVERY)
     if model.info.needs_depth:
         raise ConfigError(f"{path}: this model uses the oracle backbone (ground-truth depth as input); live needs a model that sees only the images")
     return model

@@ -316,9 +316,16 @@ class LiveEngine:
             "latency_ms": {"p50": self.latency.percentile(50), "p95": self.latency.percentile(95)},
             "viewers": [v.describe() for v in viewers],
             "health": health,
-            "model": {"path": str(getattr(self.model, "path", "")), "sizes": self.sizes.describe()},
+            "model": self._model_status(),
             "runtime": runtime_of(self.model),
         }
+
+    def _model_status(self) -> dict:
+        out = {"path": str(getattr(self.model, "path", "")), "sizes": self.sizes.describe()}
+        scale = getattr(self.model, "scale_status", None)  # ONNX Runtime's SplitPipeline: how often the scale search runs
+        if scale is not None and scale() is not None:
+            out["scale_search"] = scale()
+        return out
 
     # --- threads ----------------------------------------------------------------------------------
     def _capture_loop(self) -> None:

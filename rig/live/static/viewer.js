@@ -307,6 +307,10 @@
 
   function renderStatus(s) {
     live.lastStatus = s;
+    // The size the model renders at (a CPU runs a smaller model than a GPU): said beside the view,
+    // as the canvas scales it to fit.
+    const size = s.model && s.model.sizes ? s.model.sizes.output : null;
+    if (size) $("render-size").textContent = `rendered at ${size}`;
     const rows = [];
     const health = s.health || null;
     if (health) rows.push(["health", health.ok === false ? "FAULT" : "ok", health.ok === false]);
