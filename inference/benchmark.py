@@ -23,6 +23,7 @@ import onnx
 import torch
 
 from inference.config import SIZE_PRESETS, STAGES, ModelConfig, Sizes
+from inference.device import describe
 from inference.errors import InferenceError
 from inference.export import export_onnx, stage_of
 from inference.model.pipeline import build_model
@@ -174,6 +175,7 @@ def run_benchmark(
         **({"mast3r_blocks": [model.cfg.backbone.mast3r_encoder_blocks, model.cfg.backbone.mast3r_decoder_blocks],
             "mast3r_weights": str(weights) if weights else "random"} if model.cfg.backbone.kind == "mast3r" else {}),
         "torch_device": device,
+        "device": describe(torch.device(device)),
         "providers": chosen,
         "threads": threads or torch.get_num_threads(),
         "repeat": repeat,

@@ -52,9 +52,11 @@ def oracle_twin(model: SplatSAP) -> SplatSAP:
 
 def stage1_depths(affine, L, R, source: FrameSource) -> dict:
     """Stage 1's depth (coarse) in each source's own camera."""
-    to_right = relative_pose(R.poses, L.poses)
-    return {source.left: affine.points_left[0, 2].detach().cpu().numpy(),
-            source.right: transform_points(to_right, affine.points_right)[0, 2].detach().cpu().numpy()}
+    # The poses follow the point maps (the views may have stayed on the CPU while the model runs on a GPU).
+    dev = affine.points_right.device
+    to_right = relative_pose(R.poses.to(dev), L.poses.to(dev))
+    return {source.left: affine.points_left[0, 2].detach().float().cpu().numpy(),
+            source.right: transform_points(to_right, affine.points_right)[0, 2].detach().float().cpu().numpy()}
 
 
 def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None,
@@ -79,8 +81,8 @@ def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse
 def view_depth_errors(depth: torch.Tensor, alpha: torch.Tensor, truth: np.ndarray, mask: Optional[np.ndarray] = None) -> np.ndarray:
     """|rendered depth / truth - 1| of one rendered view (1, 1, H, W) on the pixels the truth has and
     the render covers (accumulated opacity over one half), optionally within a mask."""
-    d = depth[0, 0].detach().cpu().numpy()
-    keep = (truth > 0) & (alpha[0, 0].detach().cpu().numpy() > 0.5) & (d > 0)
+    d = depth[0, 0].detach().float().cpu().numpy()
+    keep = (truth > 0) & (alpha[0, 0].detach().float().cpu().numpy() > 0.5) & (d > 0)
     if mask is not None:
         keep &= mask
     return np.abs(d[keep] / truth[keep] - 1.0)
@@ -114,9 +116,9 @@ class _Scores:
         return cls([], [], [], [])
 
     def add(self, pred: torch.Tensor, truth: torch.Tensor, mask: Optional[np.ndarray]) -> None:
-        p = pred[0].permute(1, 2, 0).cpu().numpy()
-        t = truth[0].permute(1, 2, 0).cpu().numpy()
-        smap = ssim_map(pred, truth)[0].mean(0).cpu().numpy()
+        p = pred[0].permute(1, 2, 0).float().cpu().numpy()
+        t = truth[0].permute(1, 2, 0).float().cpu().numpy()
+        smap = ssim_map(pred.float(), truth.float())[0].mean(0).cpu().numpy()
         self.psnr.append(psnr(p, t))
         self.ssim.append(float(smap.mean()))
         if mask is not None and mask.any():
@@ -133,11 +135,17 @@ class _Scores:
 
 @torch.no_grad()
 def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Optional[int] = None,
-             references: bool = True, progress: Optional[Callable[[int, int], None]] = None) -> dict:
+             references: bool = True, progress: Optional[Callable[[int, int], None]] = None,
+             device: Optional[torch.device] = None) -> dict:
+    """`device`: where the model runs (None: where its parameters are). Frames are read and
+    resampled on the CPU, then moved there; the figures are computed on the CPU (in fp32)."""
+    if device is not None:
+        model = model.to(device)
+    device = next(model.parameters()).device
     model = model.eval()
     sizes = model.cfg.sizes
     pre = Preprocessor()
-    twin = oracle_twin(model) if references else None
+    twin = oracle_twin(model).to(device) if references else None
     picks = list(range(0, len(source), every))[: max_sets or None]
     per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
     absrel: list[float] = []
@@ -149,11 +157,11 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
     scales: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
     for n, index in enumerate(picks):
         fs = source.frame_set(index, with_truth=True)
-        L = pre.views(fs, [source.left], sizes.fine)
-        R = pre.views(fs, [source.right], sizes.fine)
+        L = pre.views(fs, [source.left], sizes.fine).to(device)
+        R = pre.views(fs, [source.right], sizes.fine).to(device)
         *_, affine = stage1_forward(model, L, R)
         seq, _, set_no = fs.key.rpartition("#")
-        scales[seq].append((int(set_no) if set_no.isdigit() else index, affine.scale[0].cpu().numpy().astype(np.float64)))
+        scales[seq].append((int(set_no) if set_no.isdigit() else index, affine.scale[0].float().cpu().numpy().astype(np.float64)))
         have_depth = all(fs.depth.get(c) is not None for c in (source.left, source.right))
         gt_coarse = {}
         if have_depth:
@@ -165,7 +173,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
                 masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (source.left, source.right)}
                 absrel_person += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, masks)
         for sup in source.supervision:
-            T = pre.views(fs, [sup], sizes.output)
+            T = pre.views(fs, [sup], sizes.output).to(device)
             mask = None
             if fs.masks.get(sup) is not None:
                 mask = pre.depth(fs.masks[sup].astype(np.float32), fs.cameras[sup], sizes.output) > 0.5
@@ -182,10 +190,10 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
                         view_absrel_person.append(float(person_err.mean()))
             if references:
                 if have_depth:
-                    depth_in = [torch.from_numpy(gt_coarse[c])[None, None] for c in (source.left, source.right)]
+                    depth_in = [torch.from_numpy(gt_coarse[c])[None, None].to(device) for c in (source.left, source.right)]
                     per_cam["oracle"][sup].add(twin.run(*args, *depth_in)["image"], T.images, mask)
                 nearer = min((source.left, source.right), key=lambda c: np.linalg.norm(fs.cameras[c].center - fs.cameras[sup].center))
-                per_cam["nearest_source"][sup].add(pre.views(fs, [nearer], sizes.output).images, T.images, mask)
+                per_cam["nearest_source"][sup].add(pre.views(fs, [nearer], sizes.output).images.to(device), T.images, mask)
         if progress is not None:
             progress(n + 1, len(picks))
     jitter = []

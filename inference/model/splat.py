@@ -208,25 +208,25 @@ def render_reference(
     Kd = K.double()
     fx, fy = Kd[:, 0, 0, None], Kd[:, 1, 1, None]
     x, y, z = mu.unbind(-1)
-    J = torch.zeros(b, n, 2, 3, dtype=torch.float64)
+    J = torch.zeros(b, n, 2, 3, dtype=torch.float64, device=mu.device)
     J[..., 0, 0] = fx / z
     J[..., 0, 2] = -fx * x / z**2
     J[..., 1, 1] = fy / z
     J[..., 1, 2] = -fy * y / z**2
-    cov2 = J @ cov3 @ J.transpose(-1, -2) + cfg.blur * torch.eye(2, dtype=torch.float64)
+    cov2 = J @ cov3 @ J.transpose(-1, -2) + cfg.blur * torch.eye(2, dtype=torch.float64, device=mu.device)
     conic = torch.linalg.inv(cov2)  # (B, N, 2, 2)
     proj = (Kd[:, None] @ mu[..., None])[..., 0]
     mean2d = proj[..., :2] / proj[..., 2:3]
-    v, u = torch.meshgrid(torch.arange(oh, dtype=torch.float64), torch.arange(ow, dtype=torch.float64), indexing="ij")
+    v, u = torch.meshgrid(torch.arange(oh, dtype=torch.float64, device=mu.device), torch.arange(ow, dtype=torch.float64, device=mu.device), indexing="ij")
     pix = torch.stack([u.reshape(-1), v.reshape(-1)], -1)  # (P, 2)
     if window is not None:
-        ax = anchors(pw, ow).double()[pix[:, 0].long()]
-        ay = anchors(ph, oh).double()[pix[:, 1].long()]
-        gy, gx = torch.meshgrid(torch.arange(ph, dtype=torch.float64), torch.arange(pw, dtype=torch.float64), indexing="ij")
+        ax = anchors(pw, ow).to(mu.device).double()[pix[:, 0].long()]
+        ay = anchors(ph, oh).to(mu.device).double()[pix[:, 1].long()]
+        gy, gx = torch.meshgrid(torch.arange(ph, dtype=torch.float64, device=mu.device), torch.arange(pw, dtype=torch.float64, device=mu.device), indexing="ij")
         reach = ((ax[:, None] - gx.reshape(1, -1)).abs() <= window) & ((ay[:, None] - gy.reshape(1, -1)).abs() <= window)
     opac = plane.opacities.reshape(b, n).double()
     cols = plane.colours.reshape(b, 3, n).transpose(1, 2).double()
-    bg = torch.tensor(cfg.background, dtype=torch.float64)
+    bg = torch.tensor(cfg.background, dtype=torch.float64, device=mu.device)
     images, depths, alphas = [], [], []
     for bi in range(b):
         d = pix[:, None, :] - mean2d[bi][None]  # (P, N, 2)

@@ -8,6 +8,7 @@ pinhole image at the size a stage needs, with the runtime's precomputed tables.
 """
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Optional, Protocol
 
@@ -44,6 +45,18 @@ class Views:
     images: torch.Tensor
     K: torch.Tensor
     poses: torch.Tensor
+
+    def to(self, device, non_blocking: bool = False) -> "Views":
+        return Views(*(t.to(device, non_blocking=non_blocking) for t in (self.images, self.K, self.poses)))
+
+    def pin_memory(self) -> "Views":
+        """Page-locked copies (DataLoader(pin_memory=True) calls this): a CUDA copy from them can
+        overlap the step under way (`to(device, non_blocking=True)`)."""
+        return Views(self.images.pin_memory(), self.K.pin_memory(), self.poses.pin_memory())
+
+    @property
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.images, self.K, self.poses))
 
 
 class Preprocessor:
@@ -86,3 +99,48 @@ class Preprocessor:
 def stack_views(items: list[Views], device=None) -> Views:
     """Frame sets (each N cameras) to one batch: (B*N, ...) grouped by frame set."""
     return Views(*(torch.cat([getattr(v, k) for v in items]).to(device) for k in ("images", "K", "poses")))
+
+
+class CachedViews:
+    """A FrameSource's views, each (frame set, camera, size) decoded and resampled once per run.
+
+    Reading a frame set decodes every camera's image file (PNG/JPEG) and resampling maps it onto the
+    pinhole image; a run draws each set many times, so both are kept here, least recently used first
+    out once `max_bytes` is reached. A frame set is read only when a view it holds is missing. With
+    DataLoader workers each worker process keeps its own cache."""
+
+    def __init__(self, source: FrameSource, pre: Preprocessor, max_bytes: int):
+        self.source = source
+        self.pre = pre
+        self.max_bytes = max(0, int(max_bytes))
+        self._views: "OrderedDict[tuple, Views]" = OrderedDict()
+        self._bytes = 0
+        self.reads = 0  # frame sets read (decoded) so far: what the cache saves is visible in benchmarks
+
+    def views(self, index: int, names: list[str], size: tuple[int, int]) -> Views:
+        keys = [(index, n, tuple(size)) for n in names]
+        missing = [n for n, k in zip(names, keys) if k not in self._views]
+        fresh: dict[str, Views] = {}
+        if missing:
+            fs = self.source.frame_set(index)
+            self.reads += 1
+            fresh = {n: self.pre.views(fs, [n], size) for n in missing}
+            for n, v in fresh.items():
+                self._store((index, n, tuple(size)), v)
+        parts = []
+        for n, k in zip(names, keys):
+            v = fresh.get(n)
+            if v is None:
+                v = self._views[k]
+                self._views.move_to_end(k)
+            parts.append(v)
+        return stack_views(parts)
+
+    def _store(self, key: tuple, v: Views) -> None:
+        if v.nbytes > self.max_bytes:
+            return
+        self._views[key] = v
+        self._bytes += v.nbytes
+        while self._bytes > self.max_bytes:
+            _, old = self._views.popitem(last=False)
+            self._bytes -= old.nbytes

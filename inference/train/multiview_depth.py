@@ -79,13 +79,13 @@ def sweep_costs(ref_image, ref_K, ref_pose, images, Ks, poses, inverse_depths, c
     point falls outside a neighbour's image or behind it."""
     m, _, h, w = images.shape
     d = inverse_depths.shape[0]
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=ref_K.dtype), torch.arange(w, dtype=ref_K.dtype), indexing="ij")
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=ref_K.dtype, device=ref_K.device), torch.arange(w, dtype=ref_K.dtype, device=ref_K.device), indexing="ij")
     pix = torch.stack([xs, ys, torch.ones_like(xs)]).reshape(3, -1)
     rays = inverse_3x3(ref_K) @ pix  # (3, HW), z = 1
     rel = poses @ invert_pose(ref_pose)  # (M, 4, 4) reference camera -> neighbour
     a = _grey(ref_image[None])
     b_all = _grey(images)
-    out = torch.empty(m, d, h, w, dtype=ref_image.dtype)
+    out = torch.empty(m, d, h, w, dtype=ref_image.dtype, device=ref_image.device)
     for start in range(0, d, cfg.chunk):
         inv = inverse_depths[start : start + cfg.chunk]
         k = inv.shape[0]
@@ -129,13 +129,13 @@ def multiview_depth(ref_image, ref_K, ref_pose, images, Ks, poses, near: float, 
         raise ValueError("multi-view depth needs at least one neighbouring camera")
     if not 0 < near < far:
         raise ValueError(f"depth range must satisfy 0 < near < far, got {near}, {far}")
-    inverse_depths = torch.linspace(1.0 / near, 1.0 / far, cfg.planes, dtype=ref_image.dtype)
+    inverse_depths = torch.linspace(1.0 / near, 1.0 / far, cfg.planes, dtype=ref_image.dtype, device=ref_image.device)
     costs = sweep_costs(ref_image, ref_K, ref_pose, images, Ks, poses, inverse_depths, cfg)
     mean = costs.mean(0)
     depth, score, best = _peak(mean, inverse_depths)
     a = _grey(ref_image[None])
     texture = (_box(a * a, cfg.window) - _box(a, cfg.window) ** 2)[0, 0]
-    away = (torch.arange(cfg.planes)[:, None, None] - best[None]).abs() > cfg.margin_planes
+    away = (torch.arange(cfg.planes, device=best.device)[:, None, None] - best[None]).abs() > cfg.margin_planes
     runner_up = torch.where(away, mean, torch.full_like(mean, -2.0)).max(0).values
     mask = (texture > cfg.min_texture) & torch.isfinite(depth) & (score - runner_up > cfg.min_margin)
     if costs.shape[0] == 1:

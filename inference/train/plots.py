@@ -12,7 +12,7 @@ from common.files import atomic_path
 
 
 def _to_uint8(img: torch.Tensor) -> np.ndarray:
-    return (img.detach().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    return (img.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
 def save_samples(path: Path, renders: list[torch.Tensor], truths: list[torch.Tensor]) -> None:

@@ -158,9 +158,10 @@ def point_splat_reference(points: torch.Tensor, colours: torch.Tensor, opacity: 
     x, y = cam[:, 0] / zs, cam[:, 1] / zs
     u = Kd[:, 0, 0, None] * x + Kd[:, 0, 1, None] * y + Kd[:, 0, 2, None]
     v = Kd[:, 1, 1, None] * y + Kd[:, 1, 2, None]
-    gy, gx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    dev = cam.device
+    gy, gx = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=dev), torch.arange(w, dtype=torch.float64, device=dev), indexing="ij")
     gx, gy = gx.reshape(-1, 1), gy.reshape(-1, 1)  # (P, 1)
-    bg = torch.tensor(cfg.background, dtype=torch.float64)
+    bg = torch.tensor(cfg.background, dtype=torch.float64, device=dev)
     images, depths, accs = [], [], []
     for i in range(b):
         d2 = (gx - u[i]) ** 2 + (gy - v[i]) ** 2  # (P, N)

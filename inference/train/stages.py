@@ -41,6 +41,12 @@ class SourceDepth:
     right: torch.Tensor
     right_mask: torch.Tensor
 
+    def to(self, device, non_blocking: bool = False) -> "SourceDepth":
+        return SourceDepth(*(t.to(device, non_blocking=non_blocking) for t in (self.left, self.left_mask, self.right, self.right_mask)))
+
+    def pin_memory(self) -> "SourceDepth":
+        return SourceDepth(*(t.pin_memory() for t in (self.left, self.left_mask, self.right, self.right_mask)))
+
 
 def log_depth_error(pred: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """|log pred - log depth| averaged over each item's masked pixels (0 where none is), then over the
@@ -70,6 +76,17 @@ class Batch:
 
     def __len__(self) -> int:
         return self.left.images.shape[0]
+
+    def _map(self, f) -> "Batch":
+        return Batch(f(self.left), f(self.right), f(self.targets), None if self.targets_fine is None else f(self.targets_fine),
+                     self.per_set, None if self.source_depth is None else f(self.source_depth))
+
+    def to(self, device, non_blocking: bool = False) -> "Batch":
+        """The batch on the model's device (built on the CPU, by the loader or its workers)."""
+        return self._map(lambda x: x.to(device, non_blocking=non_blocking))
+
+    def pin_memory(self) -> "Batch":
+        return self._map(lambda x: x.pin_memory())
 
 
 def _expand(x: torch.Tensor, s: int) -> torch.Tensor:

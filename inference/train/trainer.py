@@ -40,7 +40,7 @@ from inference.config import GROWN_FROM_ZERO, ModelConfig, weight_differences
 from inference.model.checkpoint import FORMAT, VERSION, load_weights, read_checkpoint
 from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
-from inference.train.data import FrameSource, Preprocessor, stack_views
+from inference.train.data import CachedViews, FrameSource, Preprocessor, stack_views
 from inference.train.plots import save_loss_curve, save_samples
 from inference.train.multiview_depth import source_depths
 from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss
@@ -49,6 +49,8 @@ CHECKPOINT = "checkpoint.pt"
 FINAL = "model.pt"
 METRICS = "metrics.jsonl"
 MVS_CACHE = "mvs-depth"
+PRECISIONS = ("fp32", "bf16")
+DEFAULT_CACHE_MB = 2048.0
 Progress = Callable[[int, int, dict], None]
 
 
@@ -58,23 +60,108 @@ def _rank_world() -> tuple[int, int]:
     return 0, 1
 
 
+class BatchMaker:
+    """Builds a step's batch on the CPU from (frame-set index, supervision cameras) items: views
+    from the run's view cache, stage 1's multi-view stereo depth from the output folder's cache.
+    Picklable: DataLoader workers each build batches with their own copy (and their own cache)."""
+
+    def __init__(self, cfg: TrainConfig, source: FrameSource, out: Path, cache_bytes: int, mvs: bool):
+        self.cfg = cfg
+        self.source = source
+        self.out = out
+        self.mvs = mvs
+        self.views = CachedViews(source, Preprocessor(), cache_bytes)
+
+    def __call__(self, items: list[tuple[int, list[str]]], stage: int) -> Batch:
+        s, src, views = self.cfg.model.sizes, self.source, self.views.views
+        lefts, rights, targets, fines, depths = [], [], [], [], []
+        trains_stage1 = stage == 1 or self.cfg.stage2_trains_stage1 > 0
+        want_depth = self.mvs and trains_stage1 and self.cfg.mvs_depth > 0
+        for index, sup in items:
+            lefts.append(views(index, [src.left], s.fine))
+            rights.append(views(index, [src.right], s.fine))
+            targets.append(views(index, sup, s.coarse if stage == 1 else s.output))
+            if stage == 2:
+                fines.append(views(index, sup, s.fine))
+            if want_depth:
+                depths.append(self._source_depth(index))
+        source_depth = None
+        if depths:
+            source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]) for k in range(4)))
+        return Batch(stack_views(lefts), stack_views(rights), stack_views(targets),
+                     stack_views(fines) if fines else None, len(items[0][1]), source_depth)
+
+    def _source_depth(self, index: int) -> tuple[torch.Tensor, ...]:
+        """Multi-view stereo depth of both sources at the coarse size (depth, mask, depth, mask), from
+        the cache in the output folder when this frame set's images and cameras were seen before."""
+        src, coarse = self.source, self.cfg.model.sizes.coarse
+        names = [src.left, src.right] + list(src.supervision)
+        views = self.views.views(index, names, coarse)
+        digest = hashlib.blake2b(digest_size=16)
+        for t in (views.images, views.K, views.poses):
+            digest.update(t.numpy().tobytes())
+        digest.update(json.dumps([asdict(self.cfg.mvs), self.cfg.mvs_neighbours]).encode())
+        path = self.out / MVS_CACHE / f"{digest.hexdigest()}.pt"
+        if path.is_file():
+            try:
+                # map_location: a cache written by a GPU run (CPU tensors, but say so) read anywhere
+                return tuple(torch.load(path, map_location="cpu", weights_only=True))
+            except Exception:  # a torn or foreign file: compute it again
+                pass
+        out = source_depths(views, list(range(2, len(names))), self.cfg.mvs_neighbours, self.cfg.mvs)
+        try:
+            with atomic_path(path, make_parents=True) as tmp:
+                torch.save(out, tmp)
+        except OSError:
+            pass  # the cache only saves time
+        return tuple(out)
+
+
+class _StepBatches(torch.utils.data.Dataset):
+    """The batches of a run of steps, for a DataLoader: item i is the batch of the i-th step."""
+
+    def __init__(self, maker: BatchMaker, steps: list[list[tuple[int, list[str]]]], stage: int):
+        self.maker, self.steps, self.stage = maker, steps, stage
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def __getitem__(self, i: int) -> Batch:
+        return self.maker(self.steps[i], self.stage)
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig, data: FrameSource, out_dir: str | os.PathLike, *, resume: bool = False,
                  eval_data: Optional[FrameSource] = None, progress: Optional[Progress] = None,
                  describe: Optional[dict] = None, init: Optional[str | os.PathLike] = None,
-                 backbone_weights: Optional[str | os.PathLike] = None):
+                 backbone_weights: Optional[str | os.PathLike] = None, device: Optional[torch.device] = None,
+                 precision: str = "fp32", workers: int = 0, cache_mb: float = DEFAULT_CACHE_MB):
+        """`device`: where the model trains (None: CUDA when torch sees a GPU, else the CPU; with
+        torchrun a CUDA device is the process's LOCAL_RANK GPU). `precision` "bf16" runs the forward
+        passes under autocast (weights, gradients and optimiser state stay fp32). `workers`:
+        DataLoader processes building batches (0: in this process). `cache_mb`: decoded, resampled
+        views kept per process."""
         cfg.check()
+        if precision not in PRECISIONS:
+            raise InferenceError(f"precision {precision!r}: give one of {', '.join(PRECISIONS)}")
+        if not isinstance(workers, int) or workers < 0:
+            raise InferenceError(f"workers must be an integer >= 0, got {workers!r}")
         self.cfg = cfg
         self.data = data
         self.eval_data = eval_data or data
         self.out = Path(out_dir)
         self.progress = progress
         self.rank, self.world = _rank_world()
-        if torch.cuda.is_available():
-            self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-            torch.cuda.set_device(self.device)
-        else:
-            self.device = torch.device("cpu")
+        if device is None:
+            device = torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+        if device.type == "cuda":
+            # One GPU per process: torchrun's LOCAL_RANK picks it (a lone process keeps the index given).
+            index = int(os.environ["LOCAL_RANK"]) if "LOCAL_RANK" in os.environ and self.world > 1 else (device.index or 0)
+            device = torch.device("cuda", index)
+            torch.cuda.set_device(device)
+        self.device = device
+        self.precision = precision
+        self.workers = workers
         self.pre = Preprocessor()
         if len(data) == 0:
             raise InferenceError("no frame set has every camera the training needs")
@@ -100,6 +187,9 @@ class Trainer:
             elif cfg.model.backbone.kind in PRETRAINED_BACKBONES:
                 raise InferenceError(f"the {cfg.model.backbone.kind} backbone is pretrained: give its weights (--weights PATH)")
         self.model.to(self.device)
+        cache_bytes = int(cache_mb * 2**20)
+        self.batches = BatchMaker(cfg, data, self.out, cache_bytes, mvs=True)
+        self._eval_batches = self.batches if self.eval_data is data else BatchMaker(cfg, self.eval_data, self.out, cache_bytes, mvs=False)
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
             (self.out / "samples").mkdir(exist_ok=True)
@@ -190,48 +280,9 @@ class Trainer:
         return [(self.train_index[int(s)], [self.data.supervision[int(j)] for j in rng.choice(len(self.data.supervision), k, replace=False)]) for s in sets]
 
     def _batch(self, source: FrameSource, items: list[tuple[int, list[str]]], stage: int) -> Batch:
-        s = self.cfg.model.sizes
-        lefts, rights, targets, fines, depths = [], [], [], [], []
-        trains_stage1 = stage == 1 or self.cfg.stage2_trains_stage1 > 0
-        want_depth = trains_stage1 and self.cfg.mvs_depth > 0 and source is self.data
-        for index, sup in items:
-            fs = source.frame_set(index)
-            lefts.append(self.pre.views(fs, [source.left], s.fine))
-            rights.append(self.pre.views(fs, [source.right], s.fine))
-            targets.append(self.pre.views(fs, sup, s.coarse if stage == 1 else s.output))
-            if stage == 2:
-                fines.append(self.pre.views(fs, sup, s.fine))
-            if want_depth:
-                depths.append(self._source_depth(fs))
-        source_depth = None
-        if depths:
-            source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]).to(self.device) for k in range(4)))
-        return Batch(stack_views(lefts, self.device), stack_views(rights, self.device), stack_views(targets, self.device),
-                     stack_views(fines, self.device) if fines else None, len(items[0][1]), source_depth)
-
-    def _source_depth(self, fs) -> tuple[torch.Tensor, ...]:
-        """Multi-view stereo depth of both sources at the coarse size (depth, mask, depth, mask), from
-        the cache in the output folder when this frame set's images and cameras were seen before."""
-        src, coarse = self.data, self.cfg.model.sizes.coarse
-        names = [src.left, src.right] + list(src.supervision)
-        views = self.pre.views(fs, names, coarse)
-        digest = hashlib.blake2b(digest_size=16)
-        for t in (views.images, views.K, views.poses):
-            digest.update(t.numpy().tobytes())
-        digest.update(json.dumps([asdict(self.cfg.mvs), self.cfg.mvs_neighbours]).encode())
-        path = self.out / MVS_CACHE / f"{digest.hexdigest()}.pt"
-        if path.is_file():
-            try:
-                return tuple(torch.load(path, weights_only=True))
-            except Exception:  # a torn or foreign file: compute it again
-                pass
-        out = source_depths(views, list(range(2, len(names))), self.cfg.mvs_neighbours, self.cfg.mvs)
-        try:
-            with atomic_path(path, make_parents=True) as tmp:
-                torch.save(out, tmp)
-        except OSError:
-            pass  # the cache only saves time
-        return tuple(out)
+        """A batch on the model's device (evaluation; training steps come through `_loader`)."""
+        maker = self.batches if source is self.data else self._eval_batches
+        return maker(items, stage).to(self.device)
 
     # -- loop -------------------------------------------------------------------------------------
 
@@ -269,19 +320,47 @@ class Trainer:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
         return module, param_groups
 
-    def run(self, stop_after: Optional[int] = None) -> dict:
-        """Train to the end of the schedule, or `stop_after` more steps (then checkpoint and return).
+    def run(self, stop_after: Optional[int] = None, max_minutes: Optional[float] = None,
+            checkpoint_minutes: Optional[float] = None) -> dict:
+        """Train to the end of the schedule, or `stop_after` more steps, or until `max_minutes` of
+        wall clock have passed (then checkpoint and return). `checkpoint_minutes`: also write the
+        checkpoint whenever that long has passed since the last one (a run cut off loses at most that).
         Ctrl-C or SIGTERM (one process, main thread) ends the step under way, writes the checkpoint and
         raises KeyboardInterrupt: nothing trained is lost; a second one stops at once."""
+        for name, v in (("max_minutes", max_minutes), ("checkpoint_minutes", checkpoint_minutes)):
+            if v is not None and not (isinstance(v, (int, float)) and v > 0 and math.isfinite(v)):
+                raise InferenceError(f"{name} must be a number > 0, got {v!r}")
         with _StopRequests(self.world == 1) as stop:
-            return self._run(stop_after, stop)
+            return self._run(stop_after, stop, max_minutes, checkpoint_minutes)
 
-    def _run(self, stop_after: Optional[int], stop: "_StopRequests") -> dict:
+    def _autocast(self):
+        """bf16 autocast for the forward passes (`precision`), on the model's device kind."""
+        return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16")
+
+    def _loader(self, stage: int, steps: list[list[tuple[int, list[str]]]]):
+        """The batches of `steps` on the model's device, built ahead by `workers` processes (pinned
+        memory on CUDA, so the copy overlaps the step under way) or here, one at a time."""
+        cuda = self.device.type == "cuda"
+        if self.workers == 0:
+            for items in steps:
+                yield self.batches(items, stage).to(self.device)
+            return
+        loader = torch.utils.data.DataLoader(_StepBatches(self.batches, steps, stage), batch_size=None, shuffle=False,
+                                             num_workers=self.workers, pin_memory=cuda, prefetch_factor=2)
+        for batch in loader:
+            yield batch.to(self.device, non_blocking=cuda)
+
+    def _run(self, stop_after: Optional[int], stop: "_StopRequests", max_minutes: Optional[float] = None,
+             checkpoint_minutes: Optional[float] = None) -> dict:
         cfg = self.cfg
         total = cfg.total_steps
         stop_at = total if stop_after is None else min(total, self.step + stop_after)
         started = time.monotonic()
+        deadline = None if max_minutes is None else started + 60.0 * max_minutes
+        saved_at = started
+        first_step = self.step
         last = {}
+        timed_out = False
         for stage, sched, offset in ((1, cfg.stage1, 0), (2, cfg.stage2, cfg.stage1.steps)):
             if self.step >= offset + sched.steps or sched.steps == 0:
                 continue
@@ -289,44 +368,72 @@ class Trainer:
             params = [p for g in groups for p in g["params"]]
             optimizer = torch.optim.AdamW(groups, lr=sched.lr, weight_decay=1e-4)
             if self._optim_state is not None and self.step > offset:
+                # Read onto the CPU (a checkpoint from a GPU opens anywhere); load_state_dict moves
+                # each state tensor onto its parameter's device, this run's.
                 optimizer.load_state_dict(self._optim_state)
             self._optim_state = None
-            while self.step < min(offset + sched.steps, stop_at):
+            self.optimizer = optimizer  # the stage's, for inspection (tests, tools)
+            end = min(offset + sched.steps, stop_at)
+            steps = [self._draw(stage, k, sched)[self.rank::self.world] for k in range(self.step - offset, end - offset)]
+            t_stage, n_stage = time.perf_counter(), 0
+            t0 = time.perf_counter()
+            for batch in self._loader(stage, steps):
                 k = self.step - offset
                 for g in optimizer.param_groups:
                     g["lr"] = self._lr(sched, k) * g.get("lr_factor", 1.0)
-                items = self._draw(stage, k, sched)[self.rank::self.world]
                 if stage == 1:
                     (module.module if self.world > 1 else module).gamma = cfg.gamma_at(k)
-                t0 = time.perf_counter()
                 self.model.train()
-                loss, metrics, _ = module(self._batch(self.data, items, stage))
+                with self._autocast():
+                    loss, metrics, _ = module(batch)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 gnorm = torch.nn.utils.clip_grad_norm_(params, sched.grad_clip)
                 optimizer.step()
                 self.step += 1
-                metrics = _mean_over_ranks(metrics, self.world)
+                n_stage += 1
+                metrics = _mean_over_ranks(metrics, self.world, self.device)
+                now = time.perf_counter()
+                # step_s: this step, loading included (the time since the previous step ended);
+                # steps_per_s: the stage's mean rate in this run, evaluations and checkpoints included.
                 last = {"step": self.step, "stage": stage, "lr": optimizer.param_groups[0]["lr"], **metrics,
-                        "grad_norm": float(gnorm), "step_s": round(time.perf_counter() - t0, 4)}
+                        "grad_norm": float(gnorm), "step_s": round(now - t0, 4),
+                        "steps_per_s": round(n_stage / max(now - t_stage, 1e-9), 4)}
                 self._log(last)
                 if self.progress is not None and self.rank == 0:
                     self.progress(self.step, total, last)
                 end_of_stage = self.step == offset + sched.steps
                 if self.step % cfg.eval_every == 0 or end_of_stage:
                     self.evaluate(stage)
+                wall = time.monotonic()
+                timed_out = deadline is not None and wall >= deadline and self.step < stop_at
+                if deadline is not None and self.world > 1:
+                    # every process stops at the same step: the first to see the deadline decides
+                    flag = torch.tensor([1.0 if timed_out else 0.0], device=self.device if dist.get_backend() == "nccl" else "cpu")
+                    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+                    timed_out = bool(flag.item() > 0)
+                on_clock = checkpoint_minutes is not None and wall - saved_at >= 60.0 * checkpoint_minutes
                 if (self.step % cfg.checkpoint_every == 0 or self.step % cfg.eval_every == 0 or end_of_stage
-                        or self.step == stop_at or stop.requested):
+                        or self.step == stop_at or stop.requested or timed_out or on_clock):
                     self._save(self.out / CHECKPOINT, optimizer)
+                    saved_at = time.monotonic()
                 if stop.requested:
                     raise KeyboardInterrupt
-            if self.step >= stop_at:
+                if timed_out:
+                    break
+                t0 = time.perf_counter()
+            if self.step >= stop_at or timed_out:
                 break
         if self.step >= total:
             self._save(self.out / FINAL, None, final=True)
         if self.world > 1:
             dist.barrier()
-        return {"steps": self.step, "wall_s": round(time.monotonic() - started, 1), "last": last, "out": str(self.out)}
+        wall_s = time.monotonic() - started
+        done = self.step - first_step
+        return {"steps": self.step, "steps_this_run": done, "wall_s": round(wall_s, 1),
+                "steps_per_s": round(done / wall_s, 4) if wall_s > 0 else None, "stopped_by": "max_minutes" if timed_out else None,
+                "device": str(self.device), "precision": self.precision, "workers": self.workers,
+                "last": last, "out": str(self.out)}
 
     @torch.no_grad()
     def _depth_absrel(self, picks: list[int]) -> Optional[float]:
@@ -340,9 +447,10 @@ class Trainer:
             fs = src.frame_set(index, with_truth=True)
             if fs.depth.get(src.left) is None or fs.depth.get(src.right) is None:
                 return None
-            L = self.pre.views(fs, [src.left], sizes.fine)
-            R = self.pre.views(fs, [src.right], sizes.fine)
-            *_, affine = stage1_forward(self.model, stack_views([L], self.device), stack_views([R], self.device))
+            L = self.pre.views(fs, [src.left], sizes.fine).to(self.device)
+            R = self.pre.views(fs, [src.right], sizes.fine).to(self.device)
+            with self._autocast():
+                *_, affine = stage1_forward(self.model, L, R)
             gt = {c: self.pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (src.left, src.right)}
             figures += stage1_absrel(affine, L, R, fs, src, gt, sizes.coarse)
         return float(np.mean(figures)) if figures else None
@@ -362,7 +470,8 @@ class Trainer:
         renders, truths, psnrs, losses = [], [], [], []
         for j, index in enumerate(picks):
             cam = sup[j % len(sup)]
-            _, metrics, images = module(self._batch(self.eval_data, [(index, [cam])], stage))
+            with self._autocast():
+                _, metrics, images = module(self._batch(self.eval_data, [(index, [cam])], stage))
             renders.append(images["render"][0])
             truths.append(images["truth"][0])
             psnrs.append(metrics["psnr"])
@@ -383,13 +492,15 @@ class Trainer:
         return rec
 
 
-def _mean_over_ranks(metrics: dict, world: int) -> dict:
+def _mean_over_ranks(metrics: dict, world: int, device: torch.device) -> dict:
     if world == 1:
         return metrics
     keys = sorted(metrics)
-    t = torch.tensor([metrics[k] for k in keys], dtype=torch.float64)
+    # NCCL reduces GPU tensors only; gloo CPU ones
+    on = device if dist.get_backend() == "nccl" else torch.device("cpu")
+    t = torch.tensor([metrics[k] for k in keys], dtype=torch.float64, device=on)
     dist.all_reduce(t)
-    return {k: float(v) / world for k, v in zip(keys, t)}
+    return {k: float(v) / world for k, v in zip(keys, t.cpu())}
 
 
 class _StopRequests:

@@ -30,9 +30,8 @@ def register(subparsers) -> None:
     e.add_argument("--weights", metavar="PATH", help=f"with --backbone mast3r: {WEIGHTS_HELP}")
     e.add_argument("--checkpoint", metavar="CKPT",
                    help="trained weights, e.g. from rig train (default, without --backbone: the shipped model, models/)")
-    e.add_argument("--size", choices=SIZES,
-                   help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: 128x64 / 256x144 -> 320x180 "
-                        "(default paper; with --checkpoint the checkpoint's own, no weight depends on the sizes)")
+    e.add_argument("--size", choices=SIZES, default="paper",
+                   help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: tiny (default paper; ignored with --checkpoint)")
     e.add_argument("--fp16", action="store_true", help="also write MODEL.fp16.onnx (learned layers in float16, for GPUs)")
     e.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or later (default 18)")
     e.add_argument("-o", "--output", required=True, metavar="model.onnx",
@@ -52,6 +51,7 @@ def register(subparsers) -> None:
     c.add_argument("--target", help="target camera name in the snapshot (default: the middle camera)")
     c.add_argument("--tolerance", type=float, default=1e-3, help="largest accepted image difference (default 1e-3)")
     c.add_argument("--providers", help="comma-separated ONNX Runtime providers (default: best installed)")
+    c.add_argument("--device", default="cpu", metavar="cpu|cuda[:N]", help="where the torch reference runs (default cpu)")
     c.add_argument("--json", action="store_true", help="print one JSON object with max_abs_diff_image and max_abs_diff_depth")
     c.set_defaults(func=cmd_check)
 
@@ -70,7 +70,7 @@ def register(subparsers) -> None:
     b.add_argument("--repeat", type=int, default=5, help="timed runs of each (default 5; medians are reported)")
     b.add_argument("--threads", type=int, help="CPU threads for both torch and ONNX Runtime (default: theirs)")
     b.add_argument("--providers", help="comma-separated ONNX Runtime providers (default: best installed)")
-    b.add_argument("--device", default="cpu", help="torch device (cpu or cuda; default cpu)")
+    b.add_argument("--device", default="cpu", metavar="cpu|cuda[:N]", help="torch device (default cpu)")
     b.add_argument("--json", action="store_true", help="print one JSON object: torch_ms, ort_ms (per stage and total), size, speedup")
     b.set_defaults(func=cmd_bench)
 
@@ -91,6 +91,7 @@ def register(subparsers) -> None:
     v.add_argument("--every", type=int, default=1, help="use every k-th frame set (default 1)")
     v.add_argument("--max-sets", type=int, help="at most this many frame sets")
     v.add_argument("--no-references", action="store_true", help="skip the oracle and nearer-source references")
+    v.add_argument("--device", metavar="cpu|cuda[:N]", help="where the model runs (default: CUDA when torch sees a GPU, else the CPU)")
     v.add_argument("--json", action="store_true", help="print every figure as one JSON object")
     v.set_defaults(func=cmd_eval)
 
@@ -161,24 +162,17 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise InferenceError(f"{args.checkpoint}: the checkpoint has the {model.cfg.backbone.kind} backbone, not {args.backbone}")
         weights = checkpoint_record(args.checkpoint)
         trained = True
-        if args.size is not None and Sizes.preset(args.size) != model.cfg.sizes:
-            # The same weights built at other sizes (none depends on them): e.g. the CPU live model.
-            cfg = ModelConfig.from_dict(model.cfg.to_dict())
-            cfg.sizes = Sizes.preset(args.size)
-            resized = build_model(cfg, seed=None)
-            resized.load_state_dict(model.state_dict(), strict=True)
-            model = resized.eval()
         if model.cfg.backbone.kind == "mast3r":
             licence = _licence_note(f"{args.checkpoint} holds MASt3R weights")
     elif args.backbone == "mast3r":
         from inference.model.checkpoint import backbone_weights_record, build_with_weights, seed_record
 
-        model, _ = build_with_weights(ModelConfig.for_backbone("mast3r", Sizes.preset(args.size or "paper")), args.weights)
+        model, _ = build_with_weights(ModelConfig.for_backbone("mast3r", Sizes.preset(args.size)), args.weights)
         licence = _licence_note(f"loaded {args.weights}")
         weights = seed_record(0, backbone_weights_record(args.weights))
         trained = False
     else:
-        model = build_model(ModelConfig.for_backbone(args.backbone, Sizes.preset(args.size or "paper")))
+        model = build_model(ModelConfig.for_backbone(args.backbone, Sizes.preset(args.size)))
         weights = None
         trained = False
     status.update(f"exporting {args.output} ...", force=True)
@@ -290,12 +284,14 @@ def cmd_check(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
+    from inference.device import describe, resolve_device
     from inference.errors import InferenceError
     from inference.model.checkpoint import model_from_record
     from inference.runtime import NovelViewPipeline
     from inference.runtime.synthetic import example_inputs
     from rig.commands._output import emit_json
 
+    device = resolve_device(args.device)
     pipe = NovelViewPipeline(args.model, providers=_providers(args.providers))
     cfg = pipe.info.config
     if pipe.info.precision != "fp32":
@@ -315,15 +311,17 @@ def cmd_check(args: argparse.Namespace) -> int:
         feeds = {n: a for n, a in example_inputs(cfg.sizes, pipe.info.needs_depth).arrays.items() if n in pipe.info.inputs}
         source = "synthetic inputs"
     image, depth = pipe.run(feeds)
+    model = model.to(device)
     with torch.no_grad():
-        ref_image, ref_depth = model(*[torch.from_numpy(feeds[n]) for n in model.input_names])
-    diff_image = float(np.abs(image - ref_image.numpy()).max())
-    diff_depth = float(np.abs(depth - ref_depth.numpy()).max())
+        ref_image, ref_depth = model(*[torch.from_numpy(feeds[n]).to(device) for n in model.input_names])
+    diff_image = float(np.abs(image - ref_image.cpu().numpy()).max())
+    diff_depth = float(np.abs(depth - ref_depth.cpu().numpy()).max())
     ok = diff_image <= args.tolerance
     info = {
         "model": args.model,
         "inputs": source,
         "providers": pipe.providers,
+        "torch_device": describe(device),
         "max_abs_diff_image": diff_image,
         "max_abs_diff_depth": diff_depth,
         "tolerance": args.tolerance,
@@ -332,7 +330,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(info)
     else:
-        print(f"{args.model} on {source}, providers {', '.join(pipe.providers)}")
+        print(f"{args.model} on {source}, providers {', '.join(pipe.providers)}, torch on {device}")
         print(f"max |ORT - torch|: image {diff_image:.3g} (tolerance {args.tolerance:g}), depth {diff_depth:.3g} m")
         print("OK" if ok else "MISMATCH")
     return 0 if ok else 1
@@ -340,8 +338,11 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from inference.benchmark import format_table, run_benchmark
+    from inference.device import resolve_device
     from inference.errors import InferenceError
     from rig.commands._output import emit_json
+
+    device = resolve_device(args.device)  # --device cuda without a GPU: one line, before any export
 
     sizes = [x.strip() for x in args.size.split(",") if x.strip()]
     bad = [x for x in sizes if x not in SIZES]
@@ -375,7 +376,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
                 providers=_providers(args.providers),
                 repeat=args.repeat,
                 threads=args.threads,
-                device=args.device,
+                device=str(device),
                 checkpoint=args.checkpoint,
                 model_path=args.model,
                 weights=args.weights,
@@ -414,7 +415,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise ConfigError(f"{model_path}: no such model")
     sequences = expand_sequences(args.sequence)
 
+    from inference.device import describe, resolve_device
     from inference.evaluate.model_eval import depth_lines, evaluate
+
+    device = resolve_device(args.device)  # --device cuda without a GPU: one line, exit 2
     from inference.model.checkpoint import build_with_weights, load_checkpoint, model_from_record
 
     if model_path is None:
@@ -441,13 +445,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     with ProgressBar("evaluating") as bar:
         result = evaluate(model, data, every=args.every, max_sets=args.max_sets, references=not args.no_references,
-                          progress=None if args.json else bar.update)
+                          progress=None if args.json else bar.update, device=device)
     result["model"] = str(model_path)
     result["sequences"] = [str(s.root) for s in data.sequences]
+    result["device"] = describe(device)
     if args.json:
         emit_json(result)
         return 0
-    print(f"{result['sets']} frame sets x {len(result['supervision'])} supervision cameras ({', '.join(result['supervision'])})")
+    print(f"{result['sets']} frame sets x {len(result['supervision'])} supervision cameras ({', '.join(result['supervision'])}), on {device}")
     rows = [("model", result)] + [(name, ref) for name, ref in result["references"].items()]
     print(f"{'':16s} {'PSNR':>7s} {'SSIM':>6s} {'PSNR mask':>10s} {'SSIM mask':>10s}")
     for name, r in rows:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -46,6 +47,20 @@ def register(sub) -> None:
     p.add_argument("--stop-after", type=int, help="train this many more steps, write the checkpoint and stop (continue with --resume)")
     p.add_argument("--nproc", type=int, default=1, help="data-parallel processes on this machine (torchrun; default 1)")
     p.add_argument("--threads", type=int, help="torch threads per process (default: cores / processes)")
+    p.add_argument("--device", metavar="cpu|cuda[:N]",
+                   help="where the model trains (default: CUDA when torch sees a GPU, else the CPU); --resume may change it")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                   help="fp32 (default) or bf16: the forward passes under bfloat16 autocast (weights, gradients and optimiser state stay fp32)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="DataLoader processes that build batches ahead of the model (default: 0 on the CPU, where they would take the "
+                        "model's cores; 4 on CUDA, at most cores - 1); batches land in pinned memory on CUDA")
+    p.add_argument("--cache-mb", type=float, metavar="MB",
+                   help="decoded and resampled views kept in memory per process, so each frame is decoded once per run "
+                        "(default 2048; 0 turns it off)")
+    p.add_argument("--checkpoint-minutes", type=float, metavar="M",
+                   help="also write the checkpoint every M minutes of wall clock (a run cut off loses at most that; fractions allowed)")
+    p.add_argument("--max-minutes", type=float, metavar="M",
+                   help="stop cleanly with a checkpoint after M minutes of training (continue with --resume; fractions allowed)")
     p.add_argument("--json", action="store_true", help="print a summary as one JSON object at the end")
     p.set_defaults(func=cmd_train)
 
@@ -119,6 +134,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ConfigError(f"--nproc must be at least 1, got {args.nproc}")
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be at least 1, got {args.threads}")
+    if args.workers is not None and args.workers < 0:
+        raise ConfigError(f"--workers must be at least 0, got {args.workers}")
+    for flag, value in (("--cache-mb", args.cache_mb), ("--checkpoint-minutes", args.checkpoint_minutes), ("--max-minutes", args.max_minutes)):
+        if value is not None and not (math.isfinite(value) and (value >= 0 if flag == "--cache-mb" else value > 0)):
+            raise ConfigError(f"{flag} must be a number {'>= 0' if flag == '--cache-mb' else '> 0'}, got {value:g}")
     # Everything a user can get wrong is checked before torch loads and before any work.
     cfg = build_config(args)
     out = output_folder(args.out)
@@ -158,7 +178,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     import torch
     import torch.distributed as dist
 
-    from inference.train.trainer import Trainer
+    from inference.device import describe as describe_device, resolve_device
+    from inference.train.trainer import DEFAULT_CACHE_MB, Trainer
+
+    device = resolve_device(args.device)  # --device cuda without a GPU: one line, exit 2
+    if args.precision == "bf16" and device.type == "cpu" and not _cpu_bf16():
+        raise ConfigError("--precision bf16: this CPU has no bfloat16 arithmetic torch can use; give --precision fp32")
+    workers = args.workers if args.workers is not None else (min(4, max(0, (os.cpu_count() or 1) - 1)) if device.type == "cuda" else 0)
 
     weights_record = None
     if args.weights is not None:
@@ -179,7 +205,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     rank = int(os.environ.get("RANK", "0"))
     torch.set_num_threads(args.threads or max(1, (os.cpu_count() or 1) // max(1, int(os.environ.get("LOCAL_WORLD_SIZE", world)))))
     if world > 1:
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        backend = "nccl" if device.type == "cuda" else "gloo"
         dist.init_process_group(backend)
     bar = None
     try:
@@ -199,8 +225,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         if weights_record is not None:
             describe["backbone_weights"] = weights_record
         trainer = Trainer(cfg, data, out, resume=args.resume, progress=progress, describe=describe, init=args.init,
-                          backbone_weights=args.weights)
-        summary = trainer.run(stop_after=args.stop_after)
+                          backbone_weights=args.weights, device=device, precision=args.precision, workers=workers,
+                          cache_mb=DEFAULT_CACHE_MB if args.cache_mb is None else args.cache_mb)
+        summary = trainer.run(stop_after=args.stop_after, max_minutes=args.max_minutes, checkpoint_minutes=args.checkpoint_minutes)
+        summary["device"] = describe_device(trainer.device)
     finally:
         if bar is not None:
             bar.close()
@@ -211,7 +239,22 @@ def cmd_train(args: argparse.Namespace) -> int:
             emit_json(summary)
         else:
             last = summary["last"]
-            print(f"trained {summary['steps']} steps in {summary['wall_s']} s -> {out}"
+            rate = f", {summary['steps_per_s']:.3g} steps/s on {summary['device']['device']}" if summary.get("steps_per_s") else ""
+            print(f"trained {summary['steps']} steps ({summary['steps_this_run']} in {summary['wall_s']} s{rate}) -> {out}"
                   + (f" (last: stage {last['stage']}, loss {last['loss']:.4f}, psnr {last['psnr']:.2f} dB)" if last else ""))
-            print(f"next: rig model export --checkpoint {out / 'model.pt'} -o model.onnx")
+            if summary["steps"] < cfg.total_steps:
+                print(f"stopped at step {summary['steps']} of {cfg.total_steps}; continue with: rig train ... -o {out} --resume")
+            else:
+                print(f"next: rig model export --checkpoint {out / 'model.pt'} -o model.onnx")
     return 0
+
+
+def _cpu_bf16() -> bool:
+    """Whether autocast can run bfloat16 matrix products on this CPU (one tiny product, once)."""
+    import torch
+
+    try:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return (torch.ones(2, 2) @ torch.ones(2, 2)).dtype == torch.bfloat16
+    except RuntimeError:
+        return False

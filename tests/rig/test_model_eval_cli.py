@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from simulator.takes import write_take
 
@@ -33,6 +34,7 @@ def test_eval_reports_image_depth_and_scale_figures_with_references(take, checkp
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["sets"] == 2 and out["supervision"] == ["sup1", "sup2", "sup3", "sup4"]
+    assert out["device"]["device"] == ("cuda:0" if torch.cuda.is_available() else "cpu")  # the default follows the GPU
     assert set(out["cameras"]) == {"sup1", "sup2", "sup3", "sup4"}
     assert out["overall"]["views"] == 8
     for name in ("overall",):
@@ -95,3 +97,29 @@ def test_the_rendered_depth_error_of_ground_truth_depth_is_small(take, checkpoin
         far = view_depth_errors(out["depth"] * 1.1, out["alpha"], truth)
         assert float(np.median(far)) == pytest.approx(0.1, abs=0.02)
     assert max(errors) < 0.05, errors  # measured 2.1 to 2.9 % (edges blend the near and far surface)
+
+
+@pytest.mark.parametrize("command", [["model", "eval", "--sequence", "{take}", "--model", "{checkpoint}"], ["model", "bench"],
+                                     ["model", "check", "{checkpoint}"]])
+def test_device_cuda_without_a_gpu_is_one_line(take, checkpoint, command):
+    if torch.cuda.is_available():
+        pytest.skip("torch sees a GPU here")
+    argv = [a.format(take=take, checkpoint=checkpoint) for a in command]
+    r = subprocess.run([sys.executable, "-m", "rig", *argv, "--device", "cuda"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().count("\n") == 0 and "--device cuda" in r.stderr and "--device cpu" in r.stderr, r.stderr
+
+
+@pytest.mark.cuda
+def test_eval_runs_on_cuda(take, checkpoint):
+    r = subprocess.run([sys.executable, "-m", "rig", "model", "eval", "--model", str(checkpoint), "--sequence", str(take),
+                        "--device", "cuda", "--max-sets", "1", "--json"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["device"]["device"].startswith("cuda") and "gpu" in out["device"]
+    assert 5 < out["overall"]["psnr"] < 40 and 0 < out["depth_absrel"] < 10
+    # The same figures as on the CPU, to float tolerance.
+    c = subprocess.run([sys.executable, "-m", "rig", "model", "eval", "--model", str(checkpoint), "--sequence", str(take),
+                        "--device", "cpu", "--max-sets", "1", "--json"], capture_output=True, text=True, timeout=300)
+    assert c.returncode == 0, c.stderr
+    assert out["overall"]["psnr"] == pytest.approx(json.loads(c.stdout)["overall"]["psnr"], abs=0.05)

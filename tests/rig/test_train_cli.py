@@ -80,6 +80,39 @@ def test_train_runs_both_stages_and_resume_continues_the_same_loss_curve(takes, 
     assert max(float((wa[k] - wb[k]).abs().max()) for k in wa if wa[k].is_floating_point()) < 1e-5
 
 
+def test_workers_a_clock_stop_and_bf16_continue_the_same_run(takes, light, whole, tmp_path):
+    whole, _ = whole
+    run = tmp_path / "run"
+    args = [*SMALL, "--config", light, *WHOLE_STEPS, "--device", "cpu"]
+    # A DataLoader worker builds the batches: the same ones as in this process. The clock stops the
+    # run after its first step, with a checkpoint.
+    r = rig("train", *takes, "-o", run, *args, "--workers", "1", "--max-minutes", "0.0001", "--json")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["steps"] == 1 and summary["stopped_by"] == "max_minutes" and summary["workers"] == 1
+    assert summary["device"] == {"device": "cpu"} and summary["steps_per_s"] > 0 and summary["last"]["steps_per_s"] > 0
+    a = [m for m in metrics(whole) if not m.get("eval")]
+    assert metrics(run)[0]["loss"] == pytest.approx(a[0]["loss"], rel=1e-5)
+    # Continued in bf16 autocast (on the CPU too): the rest of the schedule, evaluation included.
+    r = rig("train", *takes, "-o", run, *args, "--resume", "--precision", "bf16", "--checkpoint-minutes", "0.001")
+    assert r.returncode == 0, r.stderr
+    assert "steps/s on cpu" in r.stdout
+    b = [m for m in metrics(run) if not m.get("eval")]
+    assert [m["step"] for m in b] == [1, 2, 3, 4] and (run / "model.pt").is_file()
+    assert b[1]["loss"] == pytest.approx(a[1]["loss"], rel=0.05)  # bfloat16: 8 bits of mantissa
+    assert any(m.get("eval") and m["step"] == 3 and 0 < m["depth_absrel"] < 10 for m in metrics(run))
+
+
+def test_device_cuda_without_a_gpu_is_one_line(takes, tmp_path):
+    if torch.cuda.is_available():
+        pytest.skip("torch sees a GPU here")
+    r = rig("train", *takes, "-o", tmp_path / "run", *SMALL, "--device", "cuda")
+    one_line_exit_2(r)
+    assert "--device cuda" in r.stderr and not (tmp_path / "run").exists()
+    for flag, value in (("--max-minutes", "0"), ("--checkpoint-minutes", "-1"), ("--workers", "-1")):
+        one_line_exit_2(rig("train", *takes, "-o", tmp_path / "run", *SMALL, flag, value))
+
+
 def test_two_gloo_processes_step_as_one_process_on_the_same_global_batch(takes, light, tmp_path):
     one, two = tmp_path / "one", tmp_path / "two"
     args = [*SMALL, "--config", light, "--stage1-steps", "2", "--stage2-steps", "1", "--eval-every", "100"]
