@@ -529,6 +529,9 @@ class Check:
         for name, rec in self.results["steps"].items():
             text = f"{name} {rec['status']}"
             fig = brief(name, rec)
+            if rec["status"] == "failed":  # the line alone should say what to look at in the JSON
+                first = (rec.get("error") or "").strip().splitlines()
+                fig = "; ".join(x for x in (fig, first[-1][:100] if first else "") if x)
             if fig:
                 text += f" ({fig})"
             parts.append(text)
