@@ -13,7 +13,9 @@ so the shipped preview-size checkpoint runs at the paper's sizes (512x288 / 1024
     s1 = pipe.stage1(feeds)           # once per set; pipe.stage1_ms (CUDA-synchronised)
     view = pipe.render(s1, feeds, target_cam)   # per viewer: .image_uint8(), .image, .depth, .ms; pipe.view_ms
     pipe.graphs                       # "compiling" (eager frames meanwhile), "compiled", "eager",
-                                      # "eager (compile failed: ...)" or "eager (graph failed: ...)"
+                                      # "compiled, no CUDA graphs (...)" (capture failed: Inductor's
+                                      # kernels without graphs), "eager (compile failed: ...)" or
+                                      # "eager (graph failed: ...)"
     pipe.wait_compiled(timeout=300)   # True once the graphs serve the calls
     parity("models/splat-sap-preview.onnx", "cuda", "paper")   # max |runtime - torch CPU reference|
 
@@ -22,8 +24,9 @@ The exact API the GPU check builds on:
   tf32=False, check_tolerance=1e-3)`: `model` an M.onnx (its checkpoint: M.pt beside it, else the
   one its metadata records), a checkpoint M.pt, or None (the shipped model); `size` a preset name
   (paper, preview, test), a `Sizes`, or None (the checkpoint's own). `compile=False`: eager only.
-  `compiler(fn) -> fn` replaces `torch.compile(fn, dynamic=False)` (e.g. `lambda f: f` captures the
-  eager kernels in CUDA graphs without Inductor). `tf32`: let cuDNN and matmuls round to TF32
+  `compiler(fn) -> fn` replaces the runtime's own (Inductor with frozen weights, then plain
+  Inductor: pass None to measure what the live view runs; `lambda f: f` captures the eager kernels
+  in CUDA graphs without Inductor). `tf32`: let cuDNN and matmuls round to TF32
   (faster, but not within 1e-3 of the CPU reference: off by default).
 - `.warm(background=True)`, `.wait_compiled(timeout) -> bool`, `.graphs -> str`,
   `.compile_s` (seconds the graphs took to build, None before).
@@ -34,7 +37,9 @@ The exact API the GPU check builds on:
 - `.runtime_status()` (also `.describe()`): what `/status` says of the runtime ({"kind": "torch", "device", "gpu", "graphs", ...}).
 - `parity(model, device, size, *, compile=False, seed=0, timeout=600) -> dict` of max abs diffs.
 
-How the graphs are made: the two stage functions are compiled with `torch.compile` (Inductor), run
+How the graphs are made: the two stage functions are compiled with `torch.compile` (Inductor,
+`freezing` on: weights and the model's small CPU-built constants become GPU constants, so no call
+copies from host memory, which a capture cannot hold; plain Inductor if freezing fails), run
 twice on the device (kernels load, cuDNN picks its algorithms), then captured into a
 `torch.cuda.CUDAGraph` each, reading and writing static buffers: a call copies its inputs into them,
 replays the graph and copies the outputs out (a later replay overwrites them). That is what
@@ -43,7 +48,8 @@ background thread replays from the live engine's model thread. The compile runs 
 frames; the capture itself holds the device lock (milliseconds), as every call does, because a
 capture must not see another thread's synchronisation. The compiled graph is then checked against
 the eager functions on the synthetic inputs: over `check_tolerance` in the image, it is not used.
-Any failure (compile, capture, the check, a later replay) leaves the runtime eager, with one warning.
+A capture that fails leaves the compiled functions serving without graphs; any other failure
+(compile, the check, a later replay) leaves the runtime eager. Either is one warning in the log.
 """
 from __future__ import annotations
 
@@ -309,41 +315,72 @@ class TorchLivePipeline:
             self._state = state
             self._state_changed.notify_all()
 
+    def _compilers(self) -> list[tuple[str, Callable]]:
+        """What to compile with, in turn until one works: the caller's compiler, else Inductor with
+        its weights and constants frozen, then plain Inductor. Frozen, the small constant matrices
+        the model builds on the CPU (torch.tensor in resize_intrinsics) are folded onto the GPU at
+        compile time; unfolded, each call copies them from host memory, which a CUDA graph cannot
+        capture."""
+        if self._compiler is not None:
+            return [("given", self._compiler)]
+        return [("inductor, frozen", lambda fn: torch.compile(fn, dynamic=False, options={"freezing": True})),
+                ("inductor", lambda fn: torch.compile(fn, dynamic=False))]
+
     def _build_graphs(self) -> None:
         start = time.perf_counter()
-        try:
-            compiler = self._compiler or (lambda fn: torch.compile(fn, dynamic=False))
-            stage1_fn, view_fn = compiler(self._stage1_eager), compiler(self._view_eager)
-            feeds, target_K, target_pose = self.synthetic()
-            sources = self._sources(feeds)
-            # Compiling happens on the first calls, outside the lock: eager frames go on meanwhile.
-            with torch.no_grad():
-                s1 = tuple(t.clone() for t in stage1_fn(*sources))
-                got = view_fn(*s1, *sources, target_K, target_pose)[0]
-            if self.device.type == "cuda":
-                with self._lock, torch.no_grad():
-                    graphs = {"stage1": _Graph(stage1_fn, sources), "view": _Graph(view_fn, s1 + sources + (target_K, target_pose))}
-                    got = graphs["view"](*graphs["stage1"](*sources), *sources, target_K, target_pose)[0]  # what replays give
-            else:  # no CUDA graphs on the CPU: the compiled functions themselves (how the tests run this path)
-                graphs = {"stage1": _plain(stage1_fn), "view": _plain(view_fn)}
-            with self._lock, torch.no_grad():
-                want = self._view_eager(*self._stage1_eager(*sources), *sources, target_K, target_pose)[0]
-                diff = float((got - want).abs().max())
-            if not diff <= self.check_tolerance:
-                raise InferenceError(f"the compiled image differs from eager by {diff:.3g} (tolerance {self.check_tolerance:g})")
+        failure: Optional[BaseException] = None
+        for name, compiler in self._compilers():
+            try:
+                graphs, captured = self._compile_with(compiler)
+            except Exception as exc:  # torch.compile and capture raise many types: the next way, else eager
+                log.info("gpu runtime: compiling (%s) failed: %s: %s", name, type(exc).__name__, exc)
+                failure = exc
+                continue
             self.compile_s = time.perf_counter() - start
             self._graphs = graphs
-            self._set_state("compiled")
-        except Exception as exc:  # torch.compile and capture raise many types: the runtime stays eager, said once
-            self._give_up("compile failed", exc)
+            self._set_state("compiled" if captured is True else f"compiled, no CUDA graphs ({captured})")
+            if captured is not True:
+                self._warn(f"CUDA graph capture failed, serving compiled frames without graphs ({captured})")
+            return
+        self._give_up("compile failed", failure)
+
+    def _compile_with(self, compiler: Callable) -> tuple[dict[str, Callable], object]:
+        """(the two parts, True if captured as CUDA graphs else why not); raises when compiling fails
+        or the compiled image is over `check_tolerance` from the eager one."""
+        stage1_fn, view_fn = compiler(self._stage1_eager), compiler(self._view_eager)
+        feeds, target_K, target_pose = self.synthetic()
+        sources = self._sources(feeds)
+        # Compiling happens on the first calls, outside the lock: eager frames go on meanwhile.
+        with torch.no_grad():
+            s1 = tuple(t.clone() for t in stage1_fn(*sources))
+            got = view_fn(*s1, *sources, target_K, target_pose)[0]
+        graphs = {"stage1": _plain(stage1_fn), "view": _plain(view_fn)}
+        captured: object = "no CUDA on the CPU"  # the compiled functions themselves (how the tests run this path)
+        if self.device.type == "cuda":
+            try:
+                with self._lock, torch.no_grad():
+                    captured_graphs = {"stage1": _Graph(stage1_fn, sources), "view": _Graph(view_fn, s1 + sources + (target_K, target_pose))}
+                    got = captured_graphs["view"](*captured_graphs["stage1"](*sources), *sources, target_K, target_pose)[0]  # what replays give
+                graphs, captured = captured_graphs, True
+            except Exception as exc:  # the compiled functions still run, without graphs
+                captured = _reason(exc)
+        with self._lock, torch.no_grad():
+            want = self._view_eager(*self._stage1_eager(*sources), *sources, target_K, target_pose)[0]
+            diff = float((got - want).abs().max())
+        if not diff <= self.check_tolerance:
+            raise InferenceError(f"the compiled image differs from eager by {diff:.3g} (tolerance {self.check_tolerance:g})")
+        return graphs, (True if self.device.type != "cuda" else captured)
+
+    def _warn(self, line: str) -> None:
+        if not self._warned:
+            self._warned = True
+            log.warning("gpu runtime: %s", line)
 
     def _give_up(self, what: str, exc: BaseException) -> None:
         self._graphs = None
-        reason = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"[:300]
+        reason = _reason(exc)
         self._set_state(f"eager ({what}: {reason})")
-        if not self._warned:
-            self._warned = True
-            log.warning("gpu runtime: %s, serving eager frames (%s)", what, reason)
+        self._warn(f"{what}, serving eager frames ({reason})")
 
     def _run(self, part: str, eager: Callable, args: tuple) -> tuple[torch.Tensor, ...]:
         graphs = self._graphs
@@ -428,6 +465,10 @@ class TorchLivePipeline:
         return out
 
     describe = runtime_status
+
+
+def _reason(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"[:300]
 
 
 def _plain(fn: Callable) -> Callable:
