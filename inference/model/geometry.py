@@ -71,10 +71,13 @@ def camera_centre_distance(pose_a: torch.Tensor, pose_b: torch.Tensor) -> torch.
 
 
 def scale_intrinsics(K: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
-    """Intrinsics of the same camera resampled by (sx, sy), keeping the pixel-centre convention."""
-    scale = torch.tensor([[sx, sx, sx], [sy, sy, sy], [1.0, 1.0, 1.0]], dtype=K.dtype, device=K.device)
-    shift = torch.tensor([[0.0, 0.0, 0.5 * sx - 0.5], [0.0, 0.0, 0.5 * sy - 0.5], [0.0, 0.0, 0.0]], dtype=K.dtype, device=K.device)
-    return K * scale + shift
+    """Intrinsics of the same camera resampled by (sx, sy), keeping the pixel-centre convention.
+
+    Built from K's own rows (its last row is (0, 0, 1), so a multiple of it adds to the principal
+    point alone): no constant tensor is made per call, which on a GPU was a blocking host copy on
+    every frame and cannot be captured in a CUDA graph."""
+    last = K[..., 2, :]
+    return torch.stack((K[..., 0, :] * sx + last * (0.5 * sx - 0.5), K[..., 1, :] * sy + last * (0.5 * sy - 0.5), last), dim=-2)
 
 
 def resize_intrinsics(K: torch.Tensor, from_size: tuple[int, int], to_size: tuple[int, int]) -> torch.Tensor:

@@ -65,6 +65,25 @@ def test_resized_intrinsics_follow_the_pixel_centre_convention():
     np.testing.assert_allclose(pixel_rays(K, 256, 144)[0].permute(1, 2, 0).numpy(), small.pixel_rays(), atol=1e-12)
 
 
+def test_resizing_intrinsics_makes_no_tensor_from_host_values():
+    """On a GPU a tensor built from Python numbers is a blocking host copy on every frame, and a
+    CUDA graph cannot capture one: the per-frame geometry computes from K alone."""
+    from torch.overrides import TorchFunctionMode
+
+    made = []
+
+    class Factories(TorchFunctionMode):
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            if func in (torch.tensor, torch.as_tensor, torch.zeros, torch.ones, torch.full, torch.eye, torch.arange):
+                made.append(func.__name__)
+            return func(*args, **(kwargs or {}))
+
+    K = tensor(camera(size=(640, 360)).K)
+    with Factories():
+        resize_intrinsics(K, (640, 360), (256, 144))
+    assert made == []
+
+
 def test_warping_a_source_with_true_depth_reproduces_the_target():
     """A fronto-parallel textured plane seen by two cameras: warping the source image with the
     target's depth gives the target image (nearly exactly, away from the borders)."""
