@@ -643,7 +643,8 @@ def child_model_speed(args) -> None:
 
     device = resolve_device(args.device)
     p = plan(args.dry_run)
-    base = dry_compiler() if device.type == "cpu" else (lambda fn: torch.compile(fn, dynamic=False))
+    # On the GPU fp32 measures what the live view runs: the runtime's own compilers (None).
+    base = dry_compiler() if device.type == "cpu" else (lambda fn: torch.compile(fn, dynamic=False, options={"freezing": True}))
     emit(args.lines, compiler="dynamo, eager backend (CPU dry run)" if device.type == "cpu" else "inductor, captured as CUDA graphs",
          repeat=p["repeat"], warmup=p["warmup"], runs=[])
     runs, references, images = [], {}, {}
@@ -674,7 +675,8 @@ def child_model_speed(args) -> None:
 
         t0 = time.perf_counter()
         # bf16 is a measured variant: the runtime's own check against eager fp32 would refuse it.
-        pipe = TorchLivePipeline(None, device, size, compile=variant == "compiled", compiler=compiler,
+        own = device.type == "cuda" and not bf16
+        pipe = TorchLivePipeline(None, device, size, compile=variant == "compiled", compiler=None if own else compiler,
                                  check_tolerance=float("inf") if bf16 else PARITY_TOLERANCE)
         pipe.warm(background=False)
         row = {"size": size, "sizes": pipe.sizes.describe(), "precision": precision, "variant": variant, "graphs": pipe.graphs,

@@ -38,8 +38,8 @@ The exact API the GPU check builds on:
 - `parity(model, device, size, *, compile=False, seed=0, timeout=600) -> dict` of max abs diffs.
 
 How the graphs are made: the two stage functions are compiled with `torch.compile` (Inductor,
-`freezing` on: weights and the model's small CPU-built constants become GPU constants, so no call
-copies from host memory, which a capture cannot hold; plain Inductor if freezing fails), run
+`freezing` on: the weights become constants folded into the kernels; plain Inductor if freezing
+fails; the per-frame geometry builds no tensor from host values, which a capture could not hold), run
 twice on the device (kernels load, cuDNN picks its algorithms), then captured into a
 `torch.cuda.CUDAGraph` each, reading and writing static buffers: a call copies its inputs into them,
 replays the graph and copies the outputs out (a later replay overwrites them). That is what
@@ -317,10 +317,8 @@ class TorchLivePipeline:
 
     def _compilers(self) -> list[tuple[str, Callable]]:
         """What to compile with, in turn until one works: the caller's compiler, else Inductor with
-        its weights and constants frozen, then plain Inductor. Frozen, the small constant matrices
-        the model builds on the CPU (torch.tensor in resize_intrinsics) are folded onto the GPU at
-        compile time; unfolded, each call copies them from host memory, which a CUDA graph cannot
-        capture."""
+        its weights and constants frozen (folded into the kernels at compile time), then plain
+        Inductor."""
         if self._compiler is not None:
             return [("given", self._compiler)]
         return [("inductor, frozen", lambda fn: torch.compile(fn, dynamic=False, options={"freezing": True})),
