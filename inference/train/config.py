@@ -13,6 +13,7 @@ from typing import Any
 
 from inference.config import ModelConfig, Sizes
 from inference.errors import InferenceError
+from inference.train.depth_supervision import RECIPES, DepthSupervision
 from inference.train.multiview_depth import MultiViewDepthConfig
 
 # Backbones that start from weights the user gives (--weights) rather than from scratch.
@@ -104,10 +105,25 @@ class TrainConfig:
     # added to trained weights (config.GROWN_FROM_ZERO) learns from scratch at a rate the trained
     # rest would not stand. The longest matching prefix wins; the stage's own factor multiplies it.
     lr_factors: dict = field(default_factory=dict)
+    # What stage 1 learns from (docs/training.md, "Recipes"). "self-supervised": images and
+    # calibration only, any take. "supervised": also the take's ground-truth depth (simulator takes
+    # only; a recorded take is refused): stage 1's depth after the affine transform against the
+    # truth on every pixel it covers, with the weights of `depth_supervision`
+    # (inference/train/depth_supervision.py), on top of the self-supervised terms; stage 2 as before
+    # (and where stage2_trains_stage1 > 0, the depth terms keep holding stage 1 there too).
+    recipe: str = "self-supervised"
+    depth_supervision: DepthSupervision = field(default_factory=DepthSupervision)
+
+    @property
+    def supervised(self) -> bool:
+        return self.recipe == "supervised"
 
     def check(self) -> None:
         self.stage1.check("stage1")
         self.stage2.check("stage2")
+        if self.recipe not in RECIPES:
+            raise InferenceError(f"recipe {self.recipe!r}: give one of {', '.join(RECIPES)}")
+        self.depth_supervision.check()
         if self.model.backbone.kind == "oracle":
             raise InferenceError("the oracle backbone reads ground-truth depth: it cannot be trained self-supervised")
         if not (0 <= self.chamfer_start <= 1 and 0 <= self.chamfer_ramp <= 1):

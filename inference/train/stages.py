@@ -11,6 +11,8 @@ at the sizes the stage compares at. Supervision cameras are the targets; the mod
   inside the other source's image: parts of the scene one source cannot see have no partner.
   With `mvs_depth` > 0, plus that weight times the mean |log z - log z_mvs| of both sources' depth
   against multi-view stereo depth where it is trusted (`SourceDepth`, inference.train.multiview_depth).
+  With the supervised recipe, plus the depth terms against the take's ground-truth depth on every
+  pixel it covers (inference.train.depth_supervision; `Batch.truth_depth`).
 - Stage 2 (`Stage2Loss`): stage 1 frozen; the whole pipeline renders each supervision camera;
   lambda_fine L(C, I_fine) + lambda_render L(render, I).
 """
@@ -28,6 +30,7 @@ from inference.model.pipeline import SplatSAP, stage1_inputs
 from inference.train.chamfer import chamfer_6d
 from inference.train.config import LossWeights
 from inference.train.data import Views
+from inference.train.depth_supervision import DepthSupervision, depth_terms
 from inference.train.losses import point_colour_set, rendering_loss
 from inference.train.point_splat import PointSplatConfig, splat_points
 
@@ -57,6 +60,21 @@ def log_depth_error(pred: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor)
     return ((e * m).sum(1) / m.sum(1).clamp(min=1.0)).mean()
 
 
+def source_depths_of(points_left: torch.Tensor, points_right: torch.Tensor, left: Views, right: Views) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each source's stage-1 depth (B, H, W) in its own camera, from point maps in the left frame."""
+    z_right = transform_points(relative_pose(right.poses, left.poses), points_right)[:, 2]
+    return points_left[:, 2], z_right
+
+
+def truth_depth_terms(affine, conf_left: torch.Tensor, conf_right: torch.Tensor, left: Views, right: Views,
+                      truth: SourceDepth, w: DepthSupervision) -> tuple[torch.Tensor, dict[str, float]]:
+    """The supervised recipe's depth loss of both sources against ground truth, and its parts."""
+    z_left, z_right = source_depths_of(affine.points_left, affine.points_right, left, right)
+    conf = [conf_left[:, 0], conf_right[:, 0]]
+    terms = depth_terms([z_left, z_right], [truth.left, truth.right], [truth.left_mask, truth.right_mask], conf, w.confidence_alpha)
+    return terms.total(w), {"depth_si": float(terms.scale_invariant.detach()), "depth_metric": float(terms.metric.detach())}
+
+
 def source_depth_error(points_left: torch.Tensor, points_right: torch.Tensor, left: Views, right: Views, sd: SourceDepth) -> torch.Tensor:
     """Both sources' stage-1 depth (point maps in the left frame) against their multi-view stereo
     depth (log_depth_error, averaged)."""
@@ -73,13 +91,15 @@ class Batch:
     targets_fine: Views | None  # (B*S, ...) at the fine size (stage 2)
     per_set: int  # S
     source_depth: SourceDepth | None = None  # stage 1: multi-view stereo depth of the sources (TrainConfig.mvs_depth)
+    truth_depth: SourceDepth | None = None  # the supervised recipe: the sources' ground-truth depth at the coarse size (mask: > 0)
 
     def __len__(self) -> int:
         return self.left.images.shape[0]
 
     def _map(self, f) -> "Batch":
         return Batch(f(self.left), f(self.right), f(self.targets), None if self.targets_fine is None else f(self.targets_fine),
-                     self.per_set, None if self.source_depth is None else f(self.source_depth))
+                     self.per_set, None if self.source_depth is None else f(self.source_depth),
+                     None if self.truth_depth is None else f(self.truth_depth))
 
     def to(self, device, non_blocking: bool = False) -> "Batch":
         """The batch on the model's device (built on the CPU, by the loader or its workers)."""
@@ -110,8 +130,9 @@ def _overlap(points: torch.Tensor, to_other: torch.Tensor, K: torch.Tensor, size
 
 class Stage1Loss(nn.Module):
     def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1, render_scales: tuple[int, ...] = (1,),
-                 plane_render: float = 0.0, mvs_depth: float = 0.0):
+                 plane_render: float = 0.0, mvs_depth: float = 0.0, depth_supervision: DepthSupervision | None = None):
         super().__init__()
+        self.depth_supervision = depth_supervision  # the supervised recipe's weights (None: self-supervised)
         self.plane_render = plane_render
         self.mvs_depth = mvs_depth
         self.model = model
@@ -149,6 +170,11 @@ class Stage1Loss(nn.Module):
         if self.mvs_depth > 0 and batch.source_depth is not None:
             l_mvs = source_depth_error(affine.points_left, affine.points_right, batch.left, batch.right, batch.source_depth)
             loss = loss + self.mvs_depth * l_mvs
+        truth_parts = {}
+        if self.depth_supervision is not None and batch.truth_depth is not None:
+            l_truth, truth_parts = truth_depth_terms(affine, pm.conf_left, pm.conf_right, batch.left, batch.right,
+                                                     batch.truth_depth, self.depth_supervision)
+            loss = loss + l_truth
         # Chamfer on the pairs both sources can see (in the left frame; the right camera is r2l^-1).
         cd = None
         if self.gamma > 0:
@@ -165,7 +191,7 @@ class Stage1Loss(nn.Module):
             metrics = {"loss": float(loss), "render": float(l_render), "gamma": self.gamma,
                        **({"chamfer": float(cd)} if cd is not None else {}),
                        **({"planes": float(l_planes)} if l_planes is not None else {}),
-                       **({"mvs": float(l_mvs)} if l_mvs is not None else {}),
+                       **({"mvs": float(l_mvs)} if l_mvs is not None else {}), **truth_parts,
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
                        "coverage": float(render.alpha.mean())}
         return loss, metrics, {"render": render.image.detach(), "truth": render_truth}
@@ -188,8 +214,10 @@ class Stage1Loss(nn.Module):
 
 
 class Stage2Loss(nn.Module):
-    def __init__(self, model: SplatSAP, weights: LossWeights, mvs_depth: float = 0.0):
+    def __init__(self, model: SplatSAP, weights: LossWeights, mvs_depth: float = 0.0, depth_supervision: DepthSupervision | None = None):
         super().__init__()
+        # Where stage 2 trains stage 1 too, the supervised recipe's depth terms keep holding it (as the MVS term does).
+        self.depth_supervision = depth_supervision
         self.model = model
         self.w = weights
         self.mvs_depth = mvs_depth  # where stage 2 trains stage 1 too: its depth stays tied to the sources' MVS depth
@@ -210,9 +238,23 @@ class Stage2Loss(nn.Module):
             a = out["affine"]
             l_mvs = source_depth_error(a.points_left[::n], a.points_right[::n], L, R, batch.source_depth)
             loss = loss + self.mvs_depth * l_mvs
+        truth_parts = {}
+        if self.depth_supervision is not None and batch.truth_depth is not None:
+            a, p = out["affine"], out["point_maps"]
+            l_truth, truth_parts = truth_depth_terms(_Firsts(a, n), p.conf_left[::n], p.conf_right[::n], L, R,
+                                                     batch.truth_depth, self.depth_supervision)
+            loss = loss + l_truth
         with torch.no_grad():
             mse = ((out["image"] - T.images) ** 2).mean()
             metrics = {"loss": float(loss), "fine": float(l_fine), "render": float(l_render),
-                       **({"mvs": float(l_mvs)} if l_mvs is not None else {}),
+                       **({"mvs": float(l_mvs)} if l_mvs is not None else {}), **truth_parts,
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10)))}
         return loss, metrics, {"render": out["image"].detach(), "truth": T.images}
+
+
+class _Firsts:
+    """The point maps of a stage-2 step's frame sets: their first copies (the sets repeat per view)."""
+
+    def __init__(self, affine, n: int):
+        self.points_left = affine.points_left[::n]
+        self.points_right = affine.points_right[::n]

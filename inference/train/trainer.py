@@ -42,6 +42,7 @@ from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
 from inference.train.data import CachedViews, FrameSource, Preprocessor, stack_views
 from inference.train.plots import save_loss_curve, save_samples
+from inference.train.depth_supervision import truth_missing
 from inference.train.multiview_depth import source_depths
 from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss
 
@@ -65,18 +66,25 @@ class BatchMaker:
     from the run's view cache, stage 1's multi-view stereo depth from the output folder's cache.
     Picklable: DataLoader workers each build batches with their own copy (and their own cache)."""
 
-    def __init__(self, cfg: TrainConfig, source: FrameSource, out: Path, cache_bytes: int, mvs: bool):
+    def __init__(self, cfg: TrainConfig, source: FrameSource, out: Path, cache_bytes: int, mvs: bool, truth: bool = False):
         self.cfg = cfg
         self.source = source
         self.out = out
         self.mvs = mvs
+        self.truth = truth  # the supervised recipe: the sources' ground-truth depth in stage 1's batches
         self.views = CachedViews(source, Preprocessor(), cache_bytes)
+        # Ground-truth depth of both sources at the coarse size per frame set: rendering the truth of
+        # a set costs about as much as decoding it (every camera is rendered), and a run draws each
+        # set many times. Two float maps and two masks per set (about 0.3 MB at the preview size).
+        self._truth: dict[int, tuple[torch.Tensor, ...]] = {}
 
     def __call__(self, items: list[tuple[int, list[str]]], stage: int) -> Batch:
         s, src, views = self.cfg.model.sizes, self.source, self.views.views
         lefts, rights, targets, fines, depths = [], [], [], [], []
         trains_stage1 = stage == 1 or self.cfg.stage2_trains_stage1 > 0
         want_depth = self.mvs and trains_stage1 and self.cfg.mvs_depth > 0
+        want_truth = self.truth and trains_stage1
+        truths = []
         for index, sup in items:
             lefts.append(views(index, [src.left], s.fine))
             rights.append(views(index, [src.right], s.fine))
@@ -85,11 +93,30 @@ class BatchMaker:
                 fines.append(views(index, sup, s.fine))
             if want_depth:
                 depths.append(self._source_depth(index))
-        source_depth = None
-        if depths:
-            source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]) for k in range(4)))
+            if want_truth:
+                truths.append(self._truth_depth(index))
+        source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]) for k in range(4))) if depths else None
+        truth_depth = SourceDepth(*(torch.stack([d[k] for d in truths]) for k in range(4))) if truths else None
         return Batch(stack_views(lefts), stack_views(rights), stack_views(targets),
-                     stack_views(fines) if fines else None, len(items[0][1]), source_depth)
+                     stack_views(fines) if fines else None, len(items[0][1]), source_depth, truth_depth)
+
+    def _truth_depth(self, index: int) -> tuple[torch.Tensor, ...]:
+        """Ground-truth depth of both sources at the coarse size, resampled onto their pinhole images
+        as `rig model eval` resamples it (nearest), and where it holds (depth, mask, depth, mask)."""
+        hit = self._truth.get(index)
+        if hit is not None:
+            return hit
+        src, coarse = self.source, self.cfg.model.sizes.coarse
+        fs = src.frame_set(index, with_truth=True)
+        out = []
+        for cam in (src.left, src.right):
+            depth = fs.depth.get(cam)
+            if depth is None:
+                raise InferenceError(truth_missing(fs.key or f"frame set {index}"))
+            z = torch.from_numpy(np.ascontiguousarray(self.views.pre.depth(depth, fs.cameras[cam], coarse), dtype=np.float32))
+            out += [z, z > 0]
+        self._truth[index] = tuple(out)
+        return self._truth[index]
 
     def _source_depth(self, index: int) -> tuple[torch.Tensor, ...]:
         """Multi-view stereo depth of both sources at the coarse size (depth, mask, depth, mask), from
@@ -165,6 +192,12 @@ class Trainer:
         self.pre = Preprocessor()
         if len(data) == 0:
             raise InferenceError("no frame set has every camera the training needs")
+        if cfg.supervised:
+            # A recorded take has no ground-truth depth: refused before anything is written (a
+            # FrameSource that cannot say is refused at its first batch without truth).
+            for seq in getattr(data, "sequences", ()):
+                if hasattr(seq, "has_ground_truth") and not seq.has_ground_truth():
+                    raise InferenceError(truth_missing(str(getattr(seq, "root", seq))))
         if not data.supervision:
             raise InferenceError("training needs supervision cameras besides the two sources")
         self.train_index = list(range(0, len(data), cfg.frame_stride))
@@ -188,7 +221,7 @@ class Trainer:
                 raise InferenceError(f"the {cfg.model.backbone.kind} backbone is pretrained: give its weights (--weights PATH)")
         self.model.to(self.device)
         cache_bytes = int(cache_mb * 2**20)
-        self.batches = BatchMaker(cfg, data, self.out, cache_bytes, mvs=True)
+        self.batches = BatchMaker(cfg, data, self.out, cache_bytes, mvs=True, truth=cfg.supervised)
         self._eval_batches = self.batches if self.eval_data is data else BatchMaker(cfg, self.eval_data, self.out, cache_bytes, mvs=False)
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -315,7 +348,10 @@ class Trainer:
                 by_factor.setdefault(factor * self.cfg.lr_factor(names[id(p)]), []).append(p)
             param_groups += [{"params": ps, "lr_factor": f} for f, ps in by_factor.items()]
         w = self.cfg.loss
-        module = Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth) if stage == 1 else Stage2Loss(m, w, self.cfg.mvs_depth if self.cfg.stage2_trains_stage1 > 0 else 0.0)
+        truth = self.cfg.depth_supervision if self.cfg.supervised else None
+        module = (Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth, truth) if stage == 1
+                  else Stage2Loss(m, w, self.cfg.mvs_depth if self.cfg.stage2_trains_stage1 > 0 else 0.0,
+                                  truth if self.cfg.stage2_trains_stage1 > 0 else None))
         if self.world > 1:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
         return module, param_groups
@@ -436,13 +472,15 @@ class Trainer:
                 "last": last, "out": str(self.out)}
 
     @torch.no_grad()
-    def _depth_absrel(self, picks: list[int]) -> Optional[float]:
-        """Stage 1's depth AbsRel on held-out sets where the source has ground truth (simulator takes);
-        monitoring only, no loss reads it."""
+    def _depth_absrel(self, picks: list[int]) -> Optional[dict]:
+        """Stage 1's depth AbsRel on held-out sets where the source has ground truth (simulator takes):
+        on the pixels both sources see, on those only one sees, and on the person masks (as `rig model
+        eval` reports them); monitoring only, no loss reads it."""
         from inference.evaluate.model_eval import stage1_absrel
         from inference.train.stages import stage1_forward
 
-        src, sizes, figures = self.eval_data, self.cfg.model.sizes, []
+        src, sizes = self.eval_data, self.cfg.model.sizes
+        figures: dict[str, list[float]] = {"depth_absrel": [], "depth_absrel_single": [], "depth_absrel_person": []}
         for index in picks:
             fs = src.frame_set(index, with_truth=True)
             if fs.depth.get(src.left) is None or fs.depth.get(src.right) is None:
@@ -451,9 +489,14 @@ class Trainer:
             R = self.pre.views(fs, [src.right], sizes.fine).to(self.device)
             with self._autocast():
                 *_, affine = stage1_forward(self.model, L, R)
-            gt = {c: self.pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (src.left, src.right)}
-            figures += stage1_absrel(affine, L, R, fs, src, gt, sizes.coarse)
-        return float(np.mean(figures)) if figures else None
+            cams = (src.left, src.right)
+            gt = {c: self.pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in cams}
+            figures["depth_absrel"] += stage1_absrel(affine, L, R, fs, src, gt, sizes.coarse)
+            figures["depth_absrel_single"] += stage1_absrel(affine, L, R, fs, src, gt, sizes.coarse, single=True)
+            if all(fs.masks.get(c) is not None for c in cams):
+                masks = {c: self.pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in cams}
+                figures["depth_absrel_person"] += stage1_absrel(affine, L, R, fs, src, gt, sizes.coarse, masks)
+        return {k: float(np.mean(v)) for k, v in figures.items() if v} or None
 
     @torch.no_grad()
     def evaluate(self, stage: int) -> dict:
@@ -477,9 +520,7 @@ class Trainer:
             psnrs.append(metrics["psnr"])
             losses.append(metrics["loss"])
         rec = {"step": self.step, "stage": stage, "eval": True, "psnr": float(np.mean(psnrs)), "loss": float(np.mean(losses))}
-        absrel = self._depth_absrel(picks)
-        if absrel is not None:
-            rec["depth_absrel"] = absrel
+        rec.update(self._depth_absrel(picks) or {})
         self._log(rec)
         try:
             save_samples(self.out / "samples" / f"step-{self.step:06d}.png", renders, truths)

@@ -1,4 +1,4 @@
-"""`rig train`: train Splat-SAP on recorded or simulated sequences (both stages, self-supervised).
+"""`rig train`: train Splat-SAP on recorded or simulated sequences (both stages; self-supervised, or stage 1 also on ground-truth depth with --recipe supervised).
 
 Data-parallel: `rig train --nproc N ...` starts N processes on this machine through torchrun
 (gloo on CPU, NCCL on GPUs). For several machines run torchrun yourself on each, e.g.
@@ -21,7 +21,7 @@ from rig.errors import ConfigError
 
 def register(sub) -> None:
     p = sub.add_parser("train", help="train the model on recorded or simulated sequences",
-                       description="Train Splat-SAP self-supervised (stage 1: backbone + affine transform; stage 2: "
+                       description="Train Splat-SAP (stage 1: backbone + affine transform, self-supervised or, with --recipe supervised, also on simulator takes' ground-truth depth; stage 2: "
                                    "depth refinement, colour blending, Gaussian plane) on one or more sequences.")
     p.add_argument("sequences", nargs="+", type=Path,
                    help="sequence folders (from rig record or rig sim dataset); a data-set folder stands for all its takes")
@@ -30,6 +30,10 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     p.add_argument("--init", type=Path, metavar="CKPT",
                    help="start a new run (its own schedule) from the weights of a checkpoint of the same model configuration (settings no weight's shape depends on, such as depth init's z-buffer, depth refinement's search or stage 1's scale search, may differ)")
+    p.add_argument("--recipe", choices=("self-supervised", "supervised"),
+                   help="what stage 1 learns from (default self-supervised: images and calibration, any take); supervised: "
+                        "also the takes' ground-truth depth (simulator takes only), then stage 2 as before; fine-tune the result "
+                        "on real takes with --init CKPT and the self-supervised recipe (docs/training.md, Recipes)")
     p.add_argument("--size", choices=("paper", "preview", "test"), help="model sizes (default preview)")
     p.add_argument("--backbone", choices=("stereo", "tiny", "mast3r"),
                    help="point-map backbone (default stereo); mast3r: the pretrained MASt3R network, its weights from --weights, "
@@ -99,6 +103,8 @@ def build_config(args: argparse.Namespace):
         cfg.seed = args.seed
     if args.train_backbone:
         cfg.train_backbone = True
+    if getattr(args, "recipe", None) is not None:
+        cfg.recipe = args.recipe
     cfg.check()
     return cfg
 
@@ -172,6 +178,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ConfigError("--backbone mast3r needs --weights PATH (the MASt3R checkpoint MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth; "
                           "rig never ships it)")
     data = TrainingSet(expand_sequences(args.sequences))
+    if cfg.supervised:
+        from inference.train.depth_supervision import truth_missing
+
+        for seq in data.sequences:
+            if not seq.has_ground_truth():
+                raise ConfigError(truth_missing(str(seq.root)))
     if args.nproc > 1 and "WORLD_SIZE" not in os.environ:
         return _relaunch(args)
 

@@ -1,0 +1,182 @@
+"""The supervised recipe: stage 1's depth against the simulator's ground truth (inference.train.depth_supervision),
+its terms, a few steps of it against as many self-supervised ones, and the refusal of a take without truth."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from inference.config import ModelConfig, Sizes
+from inference.errors import InferenceError
+from inference.train.config import TrainConfig
+from inference.train.depth_supervision import DepthSupervision, depth_terms
+
+
+def _truth(seed: int = 0, shape=(2, 24, 32)) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    z = 1.0 + 5.0 * torch.rand(shape, generator=g)
+    mask = torch.rand(shape, generator=g) > 0.2
+    return z, mask
+
+
+def _terms(pred_l, pred_r, z, mask, **kw):
+    return depth_terms([pred_l, pred_r], [z, z * 1.3], [mask, mask], **kw)
+
+
+def test_depth_terms_are_zero_for_the_truth_and_grow_with_the_error():
+    z, mask = _truth()
+    t = _terms(z, z * 1.3, z, mask)
+    assert float(t.scale_invariant) == pytest.approx(0.0, abs=1e-6) and float(t.metric) == pytest.approx(0.0, abs=1e-6)
+    g = torch.Generator().manual_seed(1)
+    noise = torch.randn(z.shape, generator=g)
+    si, metric = [], []
+    for level in (0.02, 0.05, 0.1, 0.2):
+        err = torch.exp(level * noise)
+        t = _terms(z * err, z * 1.3 * err.flip(-1), z, mask)
+        si.append(float(t.scale_invariant))
+        metric.append(float(t.metric))
+    assert all(a < b for a, b in zip(si, si[1:])) and si[0] > 0
+    assert all(a < b for a, b in zip(metric, metric[1:])) and metric[0] > 0
+    # Pixels the truth does not cover do not count, however wrong.
+    wild = torch.where(mask, z, torch.full_like(z, 1e3))
+    t = _terms(wild, torch.where(mask, z * 1.3, torch.full_like(z, 1e-6)), z, mask)
+    assert float(t.metric) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_scale_invariant_term_ignores_a_global_scale_and_the_metric_term_does_not():
+    z, mask = _truth(2)
+    err = torch.exp(0.1 * torch.randn(z.shape, generator=torch.Generator().manual_seed(3)))
+    base = _terms(z * err, z * 1.3 * err, z, mask)
+    for s in (0.5, 1.7, 3.0):
+        scaled = _terms(s * z * err, s * z * 1.3 * err, z, mask)
+        assert float(scaled.scale_invariant) == pytest.approx(float(base.scale_invariant), rel=1e-4)
+        assert float(scaled.metric) > float(base.metric) + 0.5 * abs(np.log(s))
+    # Only a scale common to both sources is free: one source scaled alone is a shape error.
+    lone = _terms(1.7 * z * err, z * 1.3 * err, z, mask)
+    assert float(lone.scale_invariant) > float(base.scale_invariant) + 0.1
+
+
+def test_the_confidence_weighted_metric_term_raises_confidence_where_depth_is_right():
+    z, mask = _truth(4)
+    err = torch.ones_like(z)
+    err[:, :, :16] = 1.5  # the left half of every map 50 % off, the right half right to 1 %
+    err[:, :, 16:] = 1.01
+    logit = torch.zeros_like(z, requires_grad=True)
+    conf = 1.0 + torch.exp(logit)
+    t = _terms(z * err, z * 1.3 * err, z, mask, confidences=[conf, conf], alpha=0.2)
+    t.metric.backward()
+    g = logit.grad
+    # A descent step raises the confidence where the depth is right and lowers it where it is wrong.
+    assert (g[:, :, 16:][mask[:, :, 16:]] < 0).all() and (g[:, :, :16][mask[:, :, :16]] > 0).all()
+
+
+def test_the_recipe_and_its_weights_are_configuration_keys():
+    cfg = TrainConfig.from_dict({"recipe": "supervised", "depth_supervision": {"scale_invariant": 2.0, "metric": 0.5}})
+    assert cfg.supervised and cfg.depth_supervision == DepthSupervision(2.0, 0.5, 0.0)
+    again = TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict())), saved=True)
+    assert again.recipe == "supervised" and again.depth_supervision == cfg.depth_supervision
+    assert TrainConfig().recipe == "self-supervised" and not TrainConfig().supervised
+    for bad in ({"recipe": "mono"}, {"depth_supervision": {"metric": -1}}, {"depth_supervision": {"metric": 0, "scale_invariant": 0}},
+                {"depth_supervision": {"weight": 1}}):
+        with pytest.raises(InferenceError):
+            TrainConfig.from_dict(bad)
+
+
+# --- training on a tiny simulated take -----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory) -> Path:
+    from simulator.takes import write_take
+
+    root = tmp_path_factory.mktemp("take")
+    return Path(write_take(root / "take", seed=57, seconds=0.2, fps=10, size=(160, 96), cameras=4)["out"])
+
+
+def _config(recipe: str, steps: int) -> TrainConfig:
+    cfg = TrainConfig()
+    cfg.model = ModelConfig.for_backbone("stereo", Sizes.preset("test"))
+    cfg.stage1.steps, cfg.stage2.steps = steps, 0
+    cfg.stage1.batch, cfg.stage1.warmup, cfg.stage1.lr = 1, 0, 1e-3
+    cfg.supervision_per_step, cfg.eval_sets = 1, 1
+    cfg.mvs_depth = 0.0  # the recipes' difference under test, not the MVS term's
+    cfg.eval_every = cfg.checkpoint_every = 1000
+    cfg.recipe = recipe
+    return cfg
+
+
+def _depth_error(model, data) -> float:
+    """Stage 1's AbsRel against the truth on every pixel it covers, both sources, every set."""
+    from inference.train.data import Preprocessor
+    from inference.train.stages import source_depths_of, stage1_forward
+
+    model.eval()
+    pre, coarse, errs = Preprocessor(), model.cfg.sizes.coarse, []
+    with torch.no_grad():
+        for i in range(len(data)):
+            fs = data.frame_set(i, with_truth=True)
+            L, R = pre.views(fs, [data.left], model.cfg.sizes.fine), pre.views(fs, [data.right], model.cfg.sizes.fine)
+            *_, affine = stage1_forward(model, L, R)
+            for z, cam in zip(source_depths_of(affine.points_left, affine.points_right, L, R), (data.left, data.right)):
+                gt = pre.depth(fs.depth[cam], fs.cameras[cam], coarse)
+                keep = gt > 0
+                errs.append(float(np.abs(z[0].numpy()[keep] / gt[keep] - 1).mean()))
+    return float(np.mean(errs))
+
+
+@pytest.mark.slow
+def test_supervised_steps_bring_stage1_depth_nearer_the_truth_than_as_many_self_supervised_ones(take, tmp_path):
+    from inference.train.trainer import Trainer
+    from rig.storage.dataset import TrainingSet
+
+    data = TrainingSet([take])
+    after, logged = {}, {}
+    for recipe in ("supervised", "self-supervised"):
+        trainer = Trainer(_config(recipe, 4), data, tmp_path / recipe, device=torch.device("cpu"))
+        before = _depth_error(trainer.model, data)
+        trainer.model.train()
+        trainer.run()
+        after[recipe] = _depth_error(trainer.model, data)
+        logged[recipe] = [json.loads(line) for line in (tmp_path / recipe / "metrics.jsonl").read_text().splitlines()]
+    assert after["supervised"] < before and after["supervised"] < after["self-supervised"]
+    steps = [r for r in logged["supervised"] if not r.get("eval")]
+    assert all("depth_si" in r and "depth_metric" in r for r in steps)
+    assert steps[-1]["depth_metric"] < steps[0]["depth_metric"]
+    assert not any("depth_metric" in r for r in logged["self-supervised"])
+
+
+def _recorded_copy(take: Path, dest: Path) -> Path:
+    """The take as a recording holds it: its cameras from a calibration, no scene to render truth from."""
+    from calibration.camera import RigCalibration
+    from rig.storage.layout import CALIBRATION_COPY
+
+    shutil.copytree(take, dest)
+    meta = json.loads((dest / "sequence.json").read_text())
+    cams = meta.pop("simulator")["cameras"]
+    (dest / "sequence.json").write_text(json.dumps(meta))
+    RigCalibration.from_dict({"version": 1, "cameras": cams}).save(dest / CALIBRATION_COPY)
+    return dest
+
+
+def test_a_take_without_ground_truth_is_refused_by_the_supervised_recipe(take, tmp_path):
+    from inference.train.trainer import Trainer
+    from rig.storage.dataset import TrainingSet
+
+    recorded = _recorded_copy(take, tmp_path / "recorded")
+    data = TrainingSet([take, recorded])
+    with pytest.raises(InferenceError, match="recorded.*self-supervised"):
+        Trainer(_config("supervised", 1), data, tmp_path / "lib", device=torch.device("cpu"))
+    assert not (tmp_path / "lib").exists()
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-m", "rig", "train", str(take), str(recorded), "-o", str(tmp_path / "run"),
+                        "--size", "test", "--recipe", "supervised"], capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(recorded) in lines[0] and "--init" in lines[0] and "self-supervised" in lines[0]
+    assert not (tmp_path / "run").exists()
