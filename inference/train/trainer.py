@@ -75,7 +75,7 @@ class BatchMaker:
         self.views = CachedViews(source, Preprocessor(), cache_bytes)
         # Ground-truth depth of both sources at the coarse size per frame set: rendering the truth of
         # a set costs about as much as decoding it (every camera is rendered), and a run draws each
-        # set many times. Two float maps and two masks per set (about 0.3 MB at the preview size).
+        # set many times. Two float maps and two masks per set (about 0.4 MB at the preview size).
         self._truth: dict[int, tuple[torch.Tensor, ...]] = {}
 
     def __call__(self, items: list[tuple[int, list[str]]], stage: int) -> Batch:

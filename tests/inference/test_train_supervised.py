@@ -180,3 +180,26 @@ def test_a_take_without_ground_truth_is_refused_by_the_supervised_recipe(take, t
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and str(recorded) in lines[0] and "--init" in lines[0] and "self-supervised" in lines[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_the_nearest_person_measurement_agrees_with_the_rendered_depth():
+    """benchmarks/person_depth_range.py measures from the scene's geometry without rendering: its
+    nearest person point in a source agrees with the renderer's depth on the person mask."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import person_depth_range as pdr
+    from simulator.render import render
+    from simulator.scene import Scene
+    from simulator.variety import draw_variety
+
+    variety = draw_variety(1003)
+    scene = Scene.from_options(variety.scene)
+    rig = variety.placement.cameras(320, 180, 6, variety.seed, distortion=False)
+    t = variety.start_s
+    pts = np.concatenate([pdr.surface_points(p) for p in scene.primitives(t) if p.person])
+    for name in ("left", "right"):
+        r = render(scene, rig[name], t)
+        rendered = float(r.depth[r.mask].min())
+        measured = pdr.nearest_seen(pts, rig[name])
+        # The renderer samples pixel centres (never nearer than the surface); the measurement samples
+        # the surface (never farther than a pixel's ray would meet it, up to the point spacing).
+        assert measured == pytest.approx(rendered, abs=0.03)
