@@ -30,8 +30,9 @@ def register(subparsers) -> None:
     e.add_argument("--weights", metavar="PATH", help=f"with --backbone mast3r: {WEIGHTS_HELP}")
     e.add_argument("--checkpoint", metavar="CKPT",
                    help="trained weights, e.g. from rig train (default, without --backbone: the shipped model, models/)")
-    e.add_argument("--size", choices=SIZES, default="paper",
-                   help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: tiny (default paper; ignored with --checkpoint)")
+    e.add_argument("--size", choices=SIZES,
+                   help="paper: 512x288 / 1024x576 -> 1280x720; preview: half of it; test: 128x64 / 256x144 -> 320x180 "
+                        "(default paper; with --checkpoint the checkpoint's own, no weight depends on the sizes)")
     e.add_argument("--fp16", action="store_true", help="also write MODEL.fp16.onnx (learned layers in float16, for GPUs)")
     e.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or later (default 18)")
     e.add_argument("-o", "--output", required=True, metavar="model.onnx",
@@ -162,17 +163,24 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise InferenceError(f"{args.checkpoint}: the checkpoint has the {model.cfg.backbone.kind} backbone, not {args.backbone}")
         weights = checkpoint_record(args.checkpoint)
         trained = True
+        if args.size is not None and Sizes.preset(args.size) != model.cfg.sizes:
+            # The same weights built at other sizes (none depends on them): e.g. the CPU live model.
+            cfg = ModelConfig.from_dict(model.cfg.to_dict())
+            cfg.sizes = Sizes.preset(args.size)
+            resized = build_model(cfg, seed=None)
+            resized.load_state_dict(model.state_dict(), strict=True)
+            model = resized.eval()
         if model.cfg.backbone.kind == "mast3r":
             licence = _licence_note(f"{args.checkpoint} holds MASt3R weights")
     elif args.backbone == "mast3r":
         from inference.model.checkpoint import backbone_weights_record, build_with_weights, seed_record
 
-        model, _ = build_with_weights(ModelConfig.for_backbone("mast3r", Sizes.preset(args.size)), args.weights)
+        model, _ = build_with_weights(ModelConfig.for_backbone("mast3r", Sizes.preset(args.size or "paper")), args.weights)
         licence = _licence_note(f"loaded {args.weights}")
         weights = seed_record(0, backbone_weights_record(args.weights))
         trained = False
     else:
-        model = build_model(ModelConfig.for_backbone(args.backbone, Sizes.preset(args.size)))
+        model = build_model(ModelConfig.for_backbone(args.backbone, Sizes.preset(args.size or "paper")))
         weights = None
         trained = False
     status.update(f"exporting {args.output} ...", force=True)
