@@ -1,15 +1,29 @@
-"""The model's figures on held-out simulator takes, beside the untrained model and the references.
+"""The model's figures on a named held-out set, per take and their spread, with the references.
 
-Renders `--takes` takes from a data-set seed that no training take uses (take i of seed K has seed
-K * 1000 + i; training data sets use seed 0 by default), or reads `--data DIR`, then runs the
-evaluation of `rig model eval` for:
-- the trained model (`--model`, default the shipped models/splat-sap-preview.pt);
-- the untrained model of the same configuration (seeded initial weights);
-and prints PSNR/SSIM (full image and person mask), stage-1 depth AbsRel and scale jitter for each,
-with the references each run carries: the oracle pipeline with that model's stage-2 weights (for the
-untrained model: the oracle pipeline with untrained stage 2) and the nearer source image.
+The sets are defined in inference/evaluate/heldout.py (data-set seeds no training take uses):
+`validation` (seed 3, 12 takes) to choose among variants, `test` (seed 4, 20 takes) for the model
+card once per shipped model, `previous` (seed 1, 3 takes: the set earlier models were chosen on,
+only to put old figures beside new ones). Each take is 1 s at 5 frame sets per second, six
+640x360 cameras. The set is rendered into a temporary folder, or read from `--data DIR` (checked to
+be that set: its listing's seed, rate and takes).
 
-    .venv/bin/python benchmarks/model_eval.py [--model M.pt] [--takes 3] [--seconds 1] [--fps 5] [--seed 1] [--json]
+In one run, on the same views (`rig model eval`'s figures, inference/evaluate/model_eval.py):
+- the model (`--model`, default the shipped models/splat-sap-preview.pt);
+- the oracle pipeline with this model's stage 2 (unless `--without-own-oracle`), and with
+  untrained stage 2 (seed-0 initial weights: the acceptance reference), both fed ground-truth depth;
+- the nearer source image as it is;
+- with `--untrained`, also the untrained model of the same configuration (and its own references).
+Per take: the person's share of the supervision pixels and the nearest person, PSNR and SSIM over
+the image and the person masks, the rendered depth's AbsRel on the person masks, "vanished" (the
+share of person-mask pixels rendered over 30 % off in depth or left empty), stage-1 AbsRel; then
+for every figure its mean, median, 10th-percentile take (counted from the bad side) and worst
+take, for the model and each reference.
+
+    .venv/bin/python benchmarks/model_eval.py --set validation [--model M.pt] [--data DIR] [--takes N]
+        [--json | --json-out FILE] [--worst-png models/worst-test-take.png]
+
+`--takes N` measures only the set's first N takes (say so wherever the figures go); `--worst-png`
+writes the worst take's worst view (lowest PSNR) beside its ground truth, 640x180.
 """
 from __future__ import annotations
 
@@ -25,58 +39,131 @@ sys.path.insert(0, str(REPO))
 DEFAULT_MODEL = REPO / "models" / "splat-sap-preview.pt"
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", type=Path, default=DEFAULT_MODEL)
-    ap.add_argument("--data", type=Path, help="held-out takes already rendered (default: render them)")
-    ap.add_argument("--takes", type=int, default=3)
-    ap.add_argument("--seconds", type=float, default=1.0)
-    ap.add_argument("--fps", type=float, default=5.0)
-    ap.add_argument("--seed", type=int, default=1, help="data-set seed of the held-out takes (default 1)")
-    ap.add_argument("--every", type=int, default=1)
-    ap.add_argument("--json", action="store_true")
-    args = ap.parse_args()
+def _progress(label: str):
+    started = time.monotonic()
 
-    from inference.evaluate.model_eval import depth_lines, evaluate
+    def report(done: int, total: int) -> None:
+        spent = time.monotonic() - started
+        print(f"{label}: {done}/{total} frame sets, {spent:.0f} s, about {spent / done * (total - done):.0f} s left",
+              file=sys.stderr, flush=True)
+
+    return report
+
+
+def main() -> int:
+    from common.errors import ReportedError
+    from inference.evaluate.heldout import SETS
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--set", choices=list(SETS), default="validation",
+                    help="which held-out set (default validation; test only for the model card, once per shipped model)")
+    ap.add_argument("--model", type=Path, default=DEFAULT_MODEL)
+    ap.add_argument("--data", type=Path, help="the set already rendered (default: render it into a temporary folder)")
+    ap.add_argument("--takes", type=int, help="only the set's first N takes")
+    ap.add_argument("--size", help="render the takes at WxH instead of the set's size (quick checks only; the model's own sizes are unchanged)")
+    ap.add_argument("--every", type=int, default=1)
+    ap.add_argument("--without-own-oracle", action="store_true",
+                    help="leave out the oracle with this model's stage 2 (keeps the untrained-stage-2 oracle and the nearer source; a third less time)")
+    ap.add_argument("--untrained", action="store_true", help="also evaluate the untrained model of the same configuration")
+    ap.add_argument("--worst-png", type=Path, metavar="PNG", help="write the worst take's worst view beside its ground truth here")
+    ap.add_argument("--json", action="store_true", help="print one JSON object instead of the text")
+    ap.add_argument("--json-out", type=Path, metavar="FILE", help="also write the JSON object to FILE")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    args = ap.parse_args()
+    try:
+        return run(args)
+    except ReportedError as exc:  # bad input (a model, a folder that is not the set) gets one line
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    from inference.errors import InferenceError
+    from inference.evaluate.heldout import check_data, held_out_set, take_seeds
+    from inference.evaluate.model_eval import depth_lines, evaluate, oracle_twin, spread_lines, take_lines, vanished_lines
     from inference.model.checkpoint import load_checkpoint
     from inference.model.pipeline import build_model
     from rig.storage.dataset import TrainingSet, expand_sequences
-    from simulator.takes import write_dataset
 
+    held = held_out_set(args.set)
+    if args.takes is not None and not 1 <= args.takes <= held.takes:
+        raise InferenceError(f"--takes: the {held.name} set has {held.takes} takes; give 1 to {held.takes}")
+    if args.every < 1:
+        raise InferenceError(f"--every must be at least 1, got {args.every}")
+    size = None
+    if args.size is not None:
+        try:
+            size = tuple(int(v) for v in args.size.lower().split("x"))
+            assert len(size) == 2
+        except (ValueError, AssertionError):
+            raise InferenceError(f"--size {args.size}: give WxH, e.g. 320x180") from None
+    if not args.model.is_file():
+        raise InferenceError(f"{args.model}: no such model")
     trained = load_checkpoint(args.model)
+    if trained.needs_depth:
+        raise InferenceError(f"{args.model}: an oracle model reads ground-truth depth; evaluate a trained model")
     untrained = build_model(trained.cfg, seed=0)
+    oracles = {"oracle_untrained_stage2": oracle_twin(untrained)}
     with tempfile.TemporaryDirectory() as tmp:
         data_dir = args.data
         if data_dir is None:
-            data_dir = Path(tmp) / "held-out"
-            write_dataset(data_dir, args.takes, args.seconds, seed=args.seed, fps=args.fps, size=(640, 360))
-        data = TrainingSet(expand_sequences([data_dir]))
-        results = {}
-        for name, model in (("trained", trained), ("untrained", untrained)):
+            data_dir = Path(tmp) / held.name
             t0 = time.monotonic()
-            results[name] = evaluate(model, data, every=args.every)
+            held.render(data_dir, takes=args.takes, size=size)
+            if not args.quiet:
+                print(f"rendered {args.takes or held.takes} takes of the {held.name} set in {time.monotonic() - t0:.0f} s", file=sys.stderr)
+        meta = check_data(held, data_dir)
+        names = meta["takes"][: args.takes or None]
+        data = TrainingSet(expand_sequences([data_dir / n for n in names]))
+        seeds = take_seeds(data_dir)
+        results = {}
+        runs = [("trained", trained, oracles)] + ([("untrained", untrained, None)] if args.untrained else [])
+        for name, model, extra in runs:
+            t0 = time.monotonic()
+            results[name] = evaluate(model, data, every=args.every, oracles=extra, own_oracle=not (extra and args.without_own_oracle),
+                                     progress=None if args.quiet else _progress(f"{name} model"))
             results[name]["wall_s"] = round(time.monotonic() - t0, 1)
-    report = {"model": str(args.model), "held_out": {"seed": args.seed, "takes": args.takes, "seconds": args.seconds, "fps": args.fps},
-              **results}
+        figure = None
+        takes = results["trained"]["takes"]
+        worst_take = min(takes, key=lambda k: takes[k]["psnr"])
+        if args.worst_png is not None:
+            from inference.evaluate.figure import view_figure
+
+            v = takes[worst_take]["worst_view"]
+            figure = view_figure(trained, data, v["frame_set_index"], v["camera"], args.worst_png,
+                                 caption=f"{held.name} {worst_take} set {v['set']}, {v['psnr']:.1f} dB")
+    report = {"model": str(args.model), "held_out": {"set": held.name, "seed": held.seed, "takes": len(names), "of": held.takes,
+                                                   "take_seeds": [seeds.get(n) for n in names], "seconds": held.seconds,
+                                                   "fps": held.fps, "size": list(size or held.size)},
+              "worst_take": worst_take, "worst_png": figure, **results}
+    if args.json_out is not None:
+        args.json_out.write_text(json.dumps(report) + "\n")
     if args.json:
         print(json.dumps(report))
         return 0
-    t, u = results["trained"], results["untrained"]
-    print(f"held-out: {args.takes} takes of data-set seed {args.seed}, {t['sets']} frame sets x {len(t['supervision'])} supervision cameras")
-    rows = [("trained model", t), ("untrained model", u),
-            ("oracle, trained stage 2", t["references"].get("oracle")), ("oracle, untrained stage 2", u["references"].get("oracle")),
-            ("nearer source", t["references"].get("nearest_source"))]
-    print(f"{'':28s} {'PSNR':>7s} {'SSIM':>6s} {'PSNR mask':>10s} {'SSIM mask':>10s}")
+    t = results["trained"]
+    print(f"held-out set {held.name}: {len(names)} of its {held.takes} takes (data-set seed {held.seed}, take seeds "
+          f"{min(seeds.get(n, 0) for n in names)} to {max(seeds.get(n, 0) for n in names)}), {held.seconds:g} s at {held.fps:g} fps, "
+          f"{t['sets']} frame sets x {len(t['supervision'])} supervision cameras; model {args.model} ({t['wall_s']:.0f} s with references)")
+    rows = [("this model", t)] + [(n, r) for n, r in t["references"].items()]
+    if args.untrained:
+        u = results["untrained"]
+        rows += [("untrained model", u), ("oracle, untrained (its)", u["references"].get("oracle"))]
+    print(f"{'':24s} {'PSNR':>7s} {'SSIM':>6s} {'PSNR mask':>10s} {'SSIM mask':>10s} {'vanished':>9s}")
+    f = lambda v, fmt: (fmt % v) if v is not None else "-"
     for name, r in rows:
         if not r:
             continue
         o = r["overall"]
-        f = lambda v, fmt: (fmt % v) if v is not None else "-"
-        print(f"{name:28s} {f(o['psnr'], '%7.2f'):>7s} {f(o['ssim'], '%6.3f'):>6s} {f(o['psnr_mask'], '%10.2f'):>10s} {f(o['ssim_mask'], '%10.3f'):>10s}")
-    for name, r in (("trained", t), ("untrained", u)):
-        for line in depth_lines(r):
-            print(f"{name}: {line.strip()}")
-    print("per camera (trained): " + ", ".join(f"{c} {v['psnr']:.2f} dB" for c, v in t["cameras"].items()))
+        print(f"{name:24s} {f(o['psnr'], '%7.2f'):>7s} {f(o['ssim'], '%6.3f'):>6s} {f(o['psnr_mask'], '%10.2f'):>10s} "
+              f"{f(o['ssim_mask'], '%10.3f'):>10s} {f(r.get('vanished') and 100 * r['vanished'], '%8.2f%%'):>9s}")
+    for line in depth_lines(t) + vanished_lines(t):
+        print(line)
+    print()
+    print("\n".join(take_lines(t, seeds)))
+    print()
+    print("\n".join(spread_lines(t)))
+    print(f"worst take: {worst_take} ({takes[worst_take]['psnr']:.2f} dB)" + (f"; {figure['path']} ({figure['bytes']} bytes, {figure['key']} {figure['camera']})" if figure else ""))
     return 0
 
 

@@ -13,6 +13,16 @@ sources; against the camera's real image (undistorted, at the output size):
 The same figures for two references in the same run: the oracle pipeline (ground-truth depth
 through the oracle backbone, the same stage-2 weights) and the nearer source's image as it is
 (what a viewer sees without a model). LPIPS is left out: it needs pretrained network weights.
+
+People are the subject. Besides PSNR/SSIM on the person masks and the rendered depth's AbsRel
+there, "vanished" is the share of the ground truth's person-mask pixels (in the supervision
+cameras, pooled over views) where the rendered depth is more than 30 % off the truth, a pixel the
+render left empty counting as off: where a person's pixels show the wall behind, or nothing.
+
+Per take (a sequence; a data set's take), the same figures and the take's exposure to people: the
+person's share of its supervision pixels and the nearest person (the smallest ground-truth depth
+on any camera's person mask); then their spread over the takes (`spread`): mean, median, the 10th
+and 90th percentiles and the worst take. One easy take can hide a bad one in a mean.
 """
 from __future__ import annotations
 
@@ -33,6 +43,10 @@ from inference.train.losses import ssim_map
 from inference.train.stages import stage1_forward
 
 STAGE2_PARTS = ("depth_init.", "depth_refine.", "colour_init.", "gaussian_plane.", "splatting.")
+VANISHED_TOLERANCE = 0.30  # |rendered depth / truth - 1| beyond which a person's pixel counts as gone
+# Per-take figures and whether higher is better (the worst take is then the lowest).
+TAKE_FIGURES = {"psnr": True, "ssim": True, "psnr_mask": True, "ssim_mask": True,
+                "view_depth_absrel_person": False, "vanished": False, "depth_absrel": False}
 
 
 def oracle_twin(model: SplatSAP) -> SplatSAP:
@@ -88,6 +102,41 @@ def view_depth_errors(depth: torch.Tensor, alpha: torch.Tensor, truth: np.ndarra
     return np.abs(d[keep] / truth[keep] - 1.0)
 
 
+def vanished_pixels(depth: torch.Tensor, alpha: torch.Tensor, truth: np.ndarray, mask: np.ndarray,
+                    tolerance: float = VANISHED_TOLERANCE) -> tuple[int, int]:
+    """(pixels off, pixels counted) of one rendered view (1, 1, H, W) on the person `mask`'s pixels
+    that have ground truth: off where |depth / truth - 1| > `tolerance`, or where the render left
+    the pixel empty (accumulated opacity at most one half, or no depth), as a person who is not drawn
+    where they stand is gone from the view however the background happens to fill it."""
+    d = depth[0, 0].detach().float().cpu().numpy()
+    a = alpha[0, 0].detach().float().cpu().numpy()
+    keep = np.asarray(mask, bool) & (truth > 0)
+    d, t, a = d[keep], truth[keep], a[keep]
+    drawn = (a > 0.5) & (d > 0)
+    close = np.zeros_like(drawn)
+    close[drawn] = np.abs(d[drawn] / t[drawn] - 1.0) <= tolerance
+    return int(keep.sum() - close.sum()), int(keep.sum())
+
+
+def percentile(values, q: float) -> float:
+    """The q-th percentile of `values` as numpy computes it by default (linear interpolation
+    between the two nearest ranks: rank q/100 * (n - 1) from 0): with 20 takes the 10th percentile
+    lies 0.9 of the way from the lowest take to the second lowest."""
+    return float(np.percentile(np.asarray(values, np.float64), q))
+
+
+def spread(values, higher_is_better: bool = True) -> Optional[dict]:
+    """The spread over takes of one per-take figure: mean, median, 10th and 90th percentiles
+    (`percentile`), min, max, and the worst take's value (the min where higher is better, else the
+    max). None where no take has the figure."""
+    v = [float(x) for x in values if x is not None and np.isfinite(x)]
+    if not v:
+        return None
+    r = lambda x: round(x, 5)
+    return {"takes": len(v), "mean": r(float(np.mean(v))), "median": r(float(np.median(v))), "p10": r(percentile(v, 10)),
+            "p90": r(percentile(v, 90)), "min": r(min(v)), "max": r(max(v)), "worst": r(min(v) if higher_is_better else max(v))}
+
+
 def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None,
                   single: bool = False) -> list[float]:
     """AbsRel of stage 1's depth in each source against ground truth (see _depth_ratios for the pixels)."""
@@ -125,6 +174,10 @@ class _Scores:
             self.psnr_mask.append(psnr(p, t, mask))
             self.ssim_mask.append(float(smap[mask].mean()))
 
+    def extend(self, other: "_Scores") -> None:
+        for f in ("psnr", "ssim", "psnr_mask", "ssim_mask"):
+            getattr(self, f).extend(getattr(other, f))
+
     def summary(self) -> dict:
         def mean(x):
             return round(float(np.mean(x)), 4) if x else None
@@ -133,21 +186,56 @@ class _Scores:
                 "ssim_mask": mean(self.ssim_mask), "views": len(self.psnr)}
 
 
+@dataclass
+class _Take:
+    """What one take gathers for one pipeline: its views' scores, the person pixels its depth
+    left behind (vanished), the rendered depth's AbsRel on people per view, stage 1's AbsRel."""
+
+    scores: _Scores
+    off: int = 0
+    person: int = 0
+    person_absrel: list = None
+    depth_absrel: list = None
+
+    @classmethod
+    def new(cls) -> "_Take":
+        return cls(_Scores.new(), 0, 0, [], [])
+
+    def summary(self) -> dict:
+        s = self.scores.summary()
+        s["vanished"] = round(self.off / self.person, 5) if self.person else None
+        s["view_depth_absrel_person"] = round(float(np.mean(self.person_absrel)), 5) if self.person_absrel else None
+        s["depth_absrel"] = round(float(np.mean(self.depth_absrel)), 5) if self.depth_absrel else None
+        return s
+
+
 @torch.no_grad()
 def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Optional[int] = None,
              references: bool = True, progress: Optional[Callable[[int, int], None]] = None,
-             device: Optional[torch.device] = None) -> dict:
+             device: Optional[torch.device] = None, oracles: Optional[dict[str, SplatSAP]] = None,
+             own_oracle: bool = True) -> dict:
     """`device`: where the model runs (None: where its parameters are). Frames are read and
-    resampled on the CPU, then moved there; the figures are computed on the CPU (in fp32)."""
+    resampled on the CPU, then moved there; the figures are computed on the CPU (in fp32).
+    `oracles`: further oracle pipelines (e.g. `oracle_twin` of an untrained model: the oracle with
+    untrained stage 2) measured as references beside `oracle` under their names; `own_oracle`
+    False leaves out `oracle` itself (the oracle with this model's stage 2), a third of a long
+    run's time where only the acceptance references are wanted."""
     if device is not None:
         model = model.to(device)
     device = next(model.parameters()).device
     model = model.eval()
     sizes = model.cfg.sizes
     pre = Preprocessor()
-    twin = oracle_twin(model).to(device) if references else None
+    twins = {}
+    if references:
+        if own_oracle:
+            twins["oracle"] = oracle_twin(model).to(device)
+        twins.update({name: o.to(device).eval() for name, o in (oracles or {}).items()})
     picks = list(range(0, len(source), every))[: max_sets or None]
     per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
+    per_take: dict[str, dict[str, _Take]] = defaultdict(lambda: defaultdict(_Take.new))
+    exposure: dict[str, dict] = {}  # take -> person pixels, supervision pixels, nearest person depth
+    worst_view: dict[str, dict] = {}  # take -> the model's lowest-PSNR view in it
     absrel: list[float] = []
     absrel_person: list[float] = []
     absrel_single: list[float] = []
@@ -161,12 +249,19 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         R = pre.views(fs, [source.right], sizes.fine).to(device)
         *_, affine = stage1_forward(model, L, R)
         seq, _, set_no = fs.key.rpartition("#")
+        take = seq or "all"
         scales[seq].append((int(set_no) if set_no.isdigit() else index, affine.scale[0].float().cpu().numpy().astype(np.float64)))
+        ex = exposure.setdefault(take, {"person_px": 0, "px": 0, "nearest": float("inf")})
+        for c, m in fs.masks.items():
+            if m is not None and m.any() and fs.depth.get(c) is not None:
+                ex["nearest"] = min(ex["nearest"], float(fs.depth[c][m & (fs.depth[c] > 0)].min(initial=np.inf)))
         have_depth = all(fs.depth.get(c) is not None for c in (source.left, source.right))
         gt_coarse = {}
         if have_depth:
             gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
-            absrel += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
+            set_absrel = stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
+            absrel += set_absrel
+            per_take["model"][take].depth_absrel.extend(set_absrel)
             absrel_single += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, single=True)
             split += stage1_scale_split(affine, L, R, fs, source, gt_coarse, sizes.coarse)
             if all(fs.masks.get(c) is not None for c in (source.left, source.right)):
@@ -177,23 +272,39 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
             mask = None
             if fs.masks.get(sup) is not None:
                 mask = pre.depth(fs.masks[sup].astype(np.float32), fs.cameras[sup], sizes.output) > 0.5
+                ex["person_px"] += int(mask.sum())
+            ex["px"] += sizes.output[0] * sizes.output[1]
+            gt_view = pre.depth(fs.depth[sup], fs.cameras[sup], sizes.output) if fs.depth.get(sup) is not None else None
             args = (L.images, R.images, L.K, R.K, L.poses, R.poses, T.K, T.poses)
+
+            def score(name: str, out: dict, person_absrel: Optional[list] = None) -> None:
+                per_cam[name][sup].add(out["image"], T.images, mask)
+                per_take[name][take].scores.add(out["image"], T.images, mask)
+                if "depth" in out and gt_view is not None and mask is not None:
+                    off, counted = vanished_pixels(out["depth"], out["alpha"], gt_view, mask)
+                    per_take[name][take].off += off
+                    per_take[name][take].person += counted
+                    err = view_depth_errors(out["depth"], out["alpha"], gt_view, mask)
+                    if err.size:
+                        per_take[name][take].person_absrel.append(float(err.mean()))
+                        if person_absrel is not None:
+                            person_absrel.append(float(err.mean()))
+
             out = model.run(*args)
-            per_cam["model"][sup].add(out["image"], T.images, mask)
-            if fs.depth.get(sup) is not None:
-                gt_view = pre.depth(fs.depth[sup], fs.cameras[sup], sizes.output)
+            score("model", out, view_absrel_person)
+            last = per_take["model"][take].scores.psnr[-1]
+            if take not in worst_view or last < worst_view[take]["psnr"]:
+                worst_view[take] = {"frame_set_index": index, "set": fs.set, "camera": sup, "psnr": round(last, 4)}
+            if gt_view is not None:
                 view_err = view_depth_errors(out["depth"], out["alpha"], gt_view)
                 view_absrel.append(float(view_err.mean()) if view_err.size else float("nan"))
-                if mask is not None:
-                    person_err = view_depth_errors(out["depth"], out["alpha"], gt_view, mask)
-                    if person_err.size:
-                        view_absrel_person.append(float(person_err.mean()))
             if references:
                 if have_depth:
                     depth_in = [torch.from_numpy(gt_coarse[c])[None, None].to(device) for c in (source.left, source.right)]
-                    per_cam["oracle"][sup].add(twin.run(*args, *depth_in)["image"], T.images, mask)
+                    for name, twin in twins.items():
+                        score(name, twin.run(*args, *depth_in))
                 nearer = min((source.left, source.right), key=lambda c: np.linalg.norm(fs.cameras[c].center - fs.cameras[sup].center))
-                per_cam["nearest_source"][sup].add(pre.views(fs, [nearer], sizes.output).images.to(device), T.images, mask)
+                score("nearest_source", {"image": pre.views(fs, [nearer], sizes.output).images.to(device)})
         if progress is not None:
             progress(n + 1, len(picks))
     jitter = []
@@ -204,10 +315,22 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
     out = {}
     for name, cams in per_cam.items():
         all_scores = _Scores.new()
-        for s in cams.values():
-            for f in ("psnr", "ssim", "psnr_mask", "ssim_mask"):
-                getattr(all_scores, f).extend(getattr(s, f))
-        out[name] = {"overall": all_scores.summary(), "cameras": {c: s.summary() for c, s in sorted(cams.items())}}
+        for sc in cams.values():
+            all_scores.extend(sc)
+        takes = {}
+        off = person = 0
+        for take, t in per_take[name].items():
+            takes[take] = t.summary()
+            off, person = off + t.off, person + t.person
+            if name == "model":
+                ex = exposure[take]
+                takes[take]["person_share"] = round(ex["person_px"] / ex["px"], 5) if ex["px"] else None
+                takes[take]["nearest_person_m"] = round(ex["nearest"], 3) if np.isfinite(ex["nearest"]) else None
+                takes[take]["worst_view"] = worst_view.get(take)
+        figures = [f for f in TAKE_FIGURES if any(t.get(f) is not None for t in takes.values())]
+        out[name] = {"overall": all_scores.summary(), "cameras": {c: sc.summary() for c, sc in sorted(cams.items())},
+                     "vanished": round(off / person, 5) if person else None,
+                     "takes": takes, "spread": {f: spread([t[f] for t in takes.values()], TAKE_FIGURES[f]) for f in figures}}
     model_figures = out.pop("model", {})
     return {
         "sets": len(picks), "every": every, "supervision": list(source.supervision),
@@ -249,4 +372,58 @@ def depth_lines(result: dict) -> list[str]:
     if result.get("scale_jitter") is not None:
         j = result["scale_jitter"]
         lines.append(f"scale jitter between consecutive sets: mean {100 * j['mean']:.3f} %, max {100 * j['max']:.3f} % ({j['pairs']} pairs)")
+    return lines
+
+
+def _f(v, fmt: str, scale: float = 1.0) -> str:
+    return (fmt % (v * scale)) if v is not None else "-"
+
+
+def vanished_lines(result: dict) -> list[str]:
+    """The "vanished" figure of an `evaluate` result and of its oracle references, as text lines."""
+    if result.get("vanished") is None:
+        return []
+    refs = [f"{name} {100 * r['vanished']:.2f} %" for name, r in result.get("references", {}).items() if r.get("vanished") is not None]
+    return [f"vanished (person-mask pixels rendered over {100 * VANISHED_TOLERANCE:.0f} % off in depth, or left empty): "
+            f"{100 * result['vanished']:.2f} %" + (f" ({', '.join(refs)})" if refs else "")]
+
+
+def take_lines(result: dict, seeds: Optional[dict[str, int]] = None) -> list[str]:
+    """One line per take: its exposure to people, the model's figures and the references' PSNR."""
+    takes = result.get("takes") or {}
+    refs = result.get("references", {})
+    head = (f"{'take':10s} {'seed':>5s} {'person':>6s} {'nearest':>7s} {'PSNR':>6s} {'SSIM':>5s} {'PSNR p':>6s} {'SSIM p':>6s} "
+            f"{'depth p':>7s} {'vanish':>6s}" + "".join(f" {name[:14]:>14s}" for name in refs))
+    lines = [head]
+    for take, t in takes.items():
+        seed = (seeds or {}).get(take)
+        lines.append(f"{take[:10]:10s} {seed if seed is not None else '-':>5} {_f(t.get('person_share'), '%5.1f%%', 100):>6s} "
+                     f"{_f(t.get('nearest_person_m'), '%6.2fm'):>7s} {_f(t['psnr'], '%6.2f'):>6s} {_f(t['ssim'], '%5.3f'):>5s} "
+                     f"{_f(t.get('psnr_mask'), '%6.2f'):>6s} {_f(t.get('ssim_mask'), '%6.3f'):>6s} "
+                     f"{_f(t.get('view_depth_absrel_person'), '%6.1f%%', 100):>7s} {_f(t.get('vanished'), '%5.1f%%', 100):>6s}"
+                     + "".join(f" {_f(r.get('takes', {}).get(take, {}).get('psnr'), '%14.2f'):>14s}" for r in refs.values()))
+    lines.append("(person: share of the supervision pixels; nearest: smallest person depth in any camera; PSNR p / SSIM p: on "
+                 "the person masks; depth p: rendered depth AbsRel on them; the references' columns: their PSNR)")
+    return lines
+
+
+SPREAD_LABELS = {"psnr": ("PSNR dB", "%.2f", 1), "ssim": ("SSIM", "%.3f", 1), "psnr_mask": ("PSNR person dB", "%.2f", 1),
+                 "ssim_mask": ("SSIM person", "%.3f", 1), "view_depth_absrel_person": ("depth on people %", "%.1f", 100),
+                 "vanished": ("vanished %", "%.1f", 100), "depth_absrel": ("stage-1 AbsRel %", "%.2f", 100)}
+
+
+def spread_lines(result: dict) -> list[str]:
+    """The spread over takes of every per-take figure, for the model and each reference: mean,
+    median, the 10th-percentile take counted from the bad side (the 10th percentile where higher is
+    better, the 90th for errors) and the worst take."""
+    rows = [("model", result)] + list(result.get("references", {}).items())
+    lines = [f"{'':16s} {'figure':18s} {'mean':>7s} {'median':>7s} {'10% bad':>7s} {'worst':>7s}  (over {len((result.get('takes') or {}))} takes)"]
+    for name, r in rows:
+        for fig, s in (r.get("spread") or {}).items():
+            if s is None:
+                continue
+            label, fmt, k = SPREAD_LABELS[fig]
+            tail = s["p10"] if TAKE_FIGURES[fig] else s["p90"]
+            lines.append(f"{name[:16]:16s} {label:18s} {fmt % (k * s['mean']):>7s} {fmt % (k * s['median']):>7s} "
+                         f"{fmt % (k * tail):>7s} {fmt % (k * s['worst']):>7s}")
     return lines

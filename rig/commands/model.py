@@ -79,7 +79,9 @@ def register(subparsers) -> None:
                        description="Render every supervision camera of every (or every k-th) frame set from the two sources and report "
                                    "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth, split into scale and shape, and "
                                    "the AbsRel of the depth rendered in each supervision camera (simulator takes), and the frame-to-frame jitter of stage 1's scaling S; with the oracle pipeline (same stage-2 "
-                                   "weights) and the nearer source image as references. LPIPS is not reported (it needs pretrained weights).")
+                                   "weights) and the nearer source image as references. On the person masks also 'vanished': the share of their pixels "
+                                   "rendered more than 30 % off in depth or left empty. With several takes, each take's figures and their spread "
+                                   "(mean, median, 10th percentile, worst). LPIPS is not reported (it needs pretrained weights).")
     v.add_argument("--model", metavar="MODEL",
                    help="a checkpoint (.pt, e.g. from rig train) or an ONNX export of one (its recorded checkpoint is used)")
     v.add_argument("--backbone", choices=("mast3r",),
@@ -424,7 +426,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     sequences = expand_sequences(args.sequence)
 
     from inference.device import describe, resolve_device
-    from inference.evaluate.model_eval import depth_lines, evaluate
+    from inference.evaluate.model_eval import depth_lines, evaluate, spread_lines, take_lines, vanished_lines
 
     device = resolve_device(args.device)  # --device cuda without a GPU: one line, exit 2
     from inference.model.checkpoint import build_with_weights, load_checkpoint, model_from_record
@@ -468,8 +470,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
         fmt = lambda v, f: (f % v) if v is not None else "-"
         print(f"{name:16s} {fmt(o.get('psnr'), '%7.2f'):>7s} {fmt(o.get('ssim'), '%6.3f'):>6s} "
               f"{fmt(o.get('psnr_mask'), '%10.2f'):>10s} {fmt(o.get('ssim_mask'), '%10.3f'):>10s}")
-    for line in depth_lines(result):
+    for line in depth_lines(result) + vanished_lines(result):
         print(line)
+    if len(result.get("takes") or {}) > 1:  # per take and the spread over takes (docs/training.md, "Evaluation")
+        print()
+        print("\n".join(take_lines(result)))
+        print()
+        print("\n".join(spread_lines(result)))
     return 0
 
 

@@ -57,12 +57,23 @@ def test_eval_reports_image_depth_and_scale_figures_with_references(take, checkp
     assert set(refs) == {"oracle", "nearest_source"}
     for ref in refs.values():
         assert ref["overall"]["views"] == 8 and 5 < ref["overall"]["psnr"] < 40
+    # People first: the share of person pixels whose rendered depth is over 30 % off (or empty).
+    # The oracle's depth is the truth: hardly any (silhouette edges). (An untrained model's flat depth
+    # happens to lie near the people here: its figure is only bounded.)
+    assert refs["oracle"]["vanished"] < 0.05 and 0 <= out["vanished"] <= 1
+    assert "vanished" not in refs["nearest_source"]["spread"]  # an image without depth
+    # Per take (one here) and the spread over takes, for the model and each reference.
+    assert list(out["takes"]) == ["take"] and out["takes"]["take"]["views"] == 8
+    assert 0 < out["takes"]["take"]["person_share"] < 1 and out["takes"]["take"]["nearest_person_m"] > 0.5
+    assert out["spread"]["psnr"]["median"] == out["takes"]["take"]["psnr"] == out["spread"]["psnr"]["worst"]
+    assert out["spread"]["vanished"]["takes"] == 1 and "psnr" in refs["nearest_source"]["spread"]
     # Text mode prints the same figures as a table.
     t = subprocess.run([sys.executable, "-m", "rig", "model", "eval", "--model", str(checkpoint), "--sequence", str(take),
                         "--max-sets", "1", "--no-references"], capture_output=True, text=True, timeout=300)
     assert t.returncode == 0, t.stderr
     assert "PSNR" in t.stdout and "AbsRel" in t.stdout and "median depth / truth" in t.stdout and "oracle" not in t.stdout
     assert "rendered depth AbsRel" in t.stdout and "only one source sees" in t.stdout
+    assert "vanished (person-mask pixels rendered over 30 % off" in t.stdout
 
 
 def test_the_rendered_depth_error_of_ground_truth_depth_is_small(take, checkpoint):
