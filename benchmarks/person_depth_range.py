@@ -6,7 +6,9 @@ image is rendered), the nearest person point each source camera sees over the ta
 every person primitive (capsules and ellipsoids, simulator.people) is sampled on its surface at
 the take's scene times, projected into the left and right cameras of the take's exact rig
 (simulator.variety), and the smallest depth along the optical axis of a point inside the image is
-kept, in metres and in baselines (the distance between the two sources).
+kept, in metres and in baselines (the distance between the two sources). The farthest depth the
+sources see (the room's walls) is read from a small rendering of their depth at the take's first
+instant (the room does not move), so the span of the scene can be set against the planes'.
 
     .venv/bin/python benchmarks/person_depth_range.py [--data-seeds 0-9] [--takes 20] [--seconds 4] [--fps 10] [--json]
 
@@ -79,8 +81,12 @@ def take_figures(seed: int, seconds: float, fps: float) -> dict:
             continue
         pts = np.concatenate(pts)
         nearest = min(nearest, nearest_seen(pts, left), nearest_seen(pts, right))
+    from simulator.render import render
+
+    small = variety.placement.cameras(96, 54, 6, variety.seed, distortion=False)
+    farthest = max(float(render(scene, small[c], variety.start_s).depth.max()) for c in ("left", "right"))
     return {"seed": seed, "baseline_m": baseline, "nearest_m": nearest, "nearest_baselines": nearest / baseline,
-            "radius_m": variety.placement.radius}
+            "farthest_m": farthest, "farthest_baselines": farthest / baseline, "radius_m": variety.placement.radius}
 
 
 def _seeds(spec: str) -> list[int]:
@@ -105,6 +111,7 @@ def main(argv=None) -> int:
     near_m = np.array([r["nearest_m"] for r in seen])
     base = np.array([r["baseline_m"] for r in seen])
     worst = min(seen, key=lambda r: r["nearest_baselines"])
+    far_b = np.array([r["farthest_baselines"] for r in rows])
     summary = {
         "takes": len(rows), "takes_with_a_person_in_view": len(seen),
         "planes_baselines": [bb.stereo_near, bb.stereo_far],
@@ -114,6 +121,8 @@ def main(argv=None) -> int:
         "nearest_person_baselines": {"min": round(float(near_b.min()), 3), "p5": round(float(np.percentile(near_b, 5)), 3),
                                      "median": round(float(np.median(near_b)), 3)},
         "takes_nearer_than_near_plane": int((near_b < bb.stereo_near).sum()),
+        "farthest_seen_m": round(max(r["farthest_m"] for r in rows), 3),
+        "farthest_seen_baselines": {"max": round(float(far_b.max()), 3), "median": round(float(np.median(far_b)), 3)},
         "worst_take": {k: (round(v, 3) if isinstance(v, float) else v) for k, v in worst.items()},
     }
     if args.json:
@@ -126,6 +135,9 @@ def main(argv=None) -> int:
         print(f"nearest person point a source sees, per take: min {n['min']:.2f} m ({b['min']:.3f} baselines), "
               f"5th percentile {n['p5']:.2f} m ({b['p5']:.3f}), median {n['median']:.2f} m ({b['median']:.3f})")
         print(f"takes with a person nearer than the nearest plane: {summary['takes_nearer_than_near_plane']} of {len(seen)}")
+        f = summary["farthest_seen_baselines"]
+        print(f"farthest depth a source sees (the room): {summary['farthest_seen_m']:.2f} m; "
+              f"max {f['max']:.3f} baselines, median {f['median']:.3f}")
     return 0
 
 
