@@ -17,6 +17,12 @@ sources' pixels together:
   (hence the opacity 1 - 1/c that depth initialisation splats with) to be high where the depth is
   right and low where it is not.
 
+People are a few per cent of the pixels: with every pixel weighing the same, 25 steps from the shipped
+model brought the room's depth nearer the truth (all pixels' mean |d| 0.090 -> 0.081 on four training
+sets) while the people's went from 15 to 37 % off, the backbone's own depth as much as the translation
+(docs/training.md). `person` adds both terms again over the person-mask pixels alone (the truth's
+masks), each set's people weighing that much against the rest whatever their share of the image.
+
 Each term is averaged per frame set, then over the batch (so that data-parallel processes, each
 averaging its share, step as one process on the whole batch).
 """
@@ -45,14 +51,36 @@ class DepthSupervision:
     scale_invariant: float = 1.0  # weight of mean |d - median d|
     metric: float = 1.0  # weight of mean |d| (or its confidence-weighted form)
     confidence_alpha: float = 0.0  # > 0: the metric term is mean(c |d| - alpha log c) (DUSt3R); 0: plain |d|
+    person: float = 1.0  # both terms again over the person-mask pixels alone, at this weight (0: every pixel alike)
 
     def check(self) -> None:
-        for name in ("scale_invariant", "metric", "confidence_alpha"):
+        for name in ("scale_invariant", "metric", "confidence_alpha", "person"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
                 raise InferenceError(f"depth_supervision.{name} must be a number >= 0, got {v!r}")
         if self.scale_invariant == 0 and self.metric == 0:
             raise InferenceError("depth_supervision: the supervised recipe needs scale_invariant or metric above 0")
+
+
+@dataclass
+class TruthDepth:
+    """Both sources' ground-truth depth at the coarse size (B, H, W), where it holds, and their person masks."""
+
+    left: torch.Tensor
+    left_valid: torch.Tensor
+    left_person: torch.Tensor
+    right: torch.Tensor
+    right_valid: torch.Tensor
+    right_person: torch.Tensor
+
+    def _map(self, f) -> "TruthDepth":
+        return TruthDepth(*(f(t) for t in (self.left, self.left_valid, self.left_person, self.right, self.right_valid, self.right_person)))
+
+    def to(self, device, non_blocking: bool = False) -> "TruthDepth":
+        return self._map(lambda t: t.to(device, non_blocking=non_blocking))
+
+    def pin_memory(self) -> "TruthDepth":
+        return self._map(lambda t: t.pin_memory())
 
 
 @dataclass
@@ -83,10 +111,13 @@ def _masked_median(d: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def depth_terms(preds: list[torch.Tensor], truths: list[torch.Tensor], masks: list[torch.Tensor],
-                confidences: list[torch.Tensor] | None = None, alpha: float = 0.0) -> DepthTerms:
+                confidences: list[torch.Tensor] | None = None, alpha: float = 0.0,
+                persons: list[torch.Tensor] | None = None, person: float = 0.0) -> DepthTerms:
     """The two terms for B frame sets: per source, predicted depth (B, H, W), true depth (B, H, W),
     where the truth holds (B, H, W) bool and, with `alpha` > 0, the confidence (B, H, W) >= 1. All
-    sources of a set share one median for the scale-invariant term."""
+    sources of a set share one median for the scale-invariant term. With `person` > 0 and the person
+    masks (B, H, W) bool, each term adds `person` times its mean over the person pixels (0 for a set
+    without any)."""
     b = preds[0].shape[0]
     d = torch.cat([log_ratio(p, t).reshape(b, -1) for p, t in zip(preds, truths)], dim=1)
     m = torch.cat([k.reshape(b, -1) for k in masks], dim=1) & torch.isfinite(d)
@@ -94,11 +125,17 @@ def depth_terms(preds: list[torch.Tensor], truths: list[torch.Tensor], masks: li
     mf = m.to(d.dtype)
     count = mf.sum(1).clamp(min=1.0)
     med = _masked_median(d, m)
-    si = (((d - med[:, None]).abs() * mf).sum(1) / count).mean()
+    centred = (d - med[:, None]).abs()
     if alpha > 0 and confidences is not None:
         c = torch.cat([k.reshape(b, -1) for k in confidences], dim=1)
         per_pixel = c * d.abs() - alpha * torch.log(c)
     else:
         per_pixel = d.abs()
+    si = ((centred * mf).sum(1) / count).mean()
     metric = ((per_pixel * mf).sum(1) / count).mean()
+    if person > 0 and persons is not None:
+        pf = (torch.cat([k.reshape(b, -1) for k in persons], dim=1) & m).to(d.dtype)
+        pcount = pf.sum(1).clamp(min=1.0)
+        si = si + person * ((centred * pf).sum(1) / pcount).mean()
+        metric = metric + person * ((per_pixel * pf).sum(1) / pcount).mean()
     return DepthTerms(si, metric)

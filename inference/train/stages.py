@@ -30,7 +30,7 @@ from inference.model.pipeline import SplatSAP, stage1_inputs
 from inference.train.chamfer import chamfer_6d
 from inference.train.config import LossWeights
 from inference.train.data import Views
-from inference.train.depth_supervision import DepthSupervision, depth_terms
+from inference.train.depth_supervision import DepthSupervision, TruthDepth, depth_terms
 from inference.train.losses import point_colour_set, rendering_loss
 from inference.train.point_splat import PointSplatConfig, splat_points
 
@@ -67,11 +67,12 @@ def source_depths_of(points_left: torch.Tensor, points_right: torch.Tensor, left
 
 
 def truth_depth_terms(affine, conf_left: torch.Tensor, conf_right: torch.Tensor, left: Views, right: Views,
-                      truth: SourceDepth, w: DepthSupervision) -> tuple[torch.Tensor, dict[str, float]]:
+                      truth: TruthDepth, w: DepthSupervision) -> tuple[torch.Tensor, dict[str, float]]:
     """The supervised recipe's depth loss of both sources against ground truth, and its parts."""
     z_left, z_right = source_depths_of(affine.points_left, affine.points_right, left, right)
     conf = [conf_left[:, 0], conf_right[:, 0]]
-    terms = depth_terms([z_left, z_right], [truth.left, truth.right], [truth.left_mask, truth.right_mask], conf, w.confidence_alpha)
+    terms = depth_terms([z_left, z_right], [truth.left, truth.right], [truth.left_valid, truth.right_valid], conf, w.confidence_alpha,
+                        [truth.left_person, truth.right_person], w.person)
     return terms.total(w), {"depth_si": float(terms.scale_invariant.detach()), "depth_metric": float(terms.metric.detach())}
 
 
@@ -91,7 +92,7 @@ class Batch:
     targets_fine: Views | None  # (B*S, ...) at the fine size (stage 2)
     per_set: int  # S
     source_depth: SourceDepth | None = None  # stage 1: multi-view stereo depth of the sources (TrainConfig.mvs_depth)
-    truth_depth: SourceDepth | None = None  # the supervised recipe: the sources' ground-truth depth at the coarse size (mask: > 0)
+    truth_depth: TruthDepth | None = None  # the supervised recipe: the sources' ground-truth depth at the coarse size
 
     def __len__(self) -> int:
         return self.left.images.shape[0]

@@ -42,7 +42,7 @@ from inference.model.pipeline import SplatSAP, build_model
 from inference.train.config import PRETRAINED_BACKBONES, StageSchedule, TrainConfig
 from inference.train.data import CachedViews, FrameSource, Preprocessor, stack_views
 from inference.train.plots import save_loss_curve, save_samples
-from inference.train.depth_supervision import truth_missing
+from inference.train.depth_supervision import TruthDepth, truth_missing
 from inference.train.multiview_depth import source_depths
 from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss
 
@@ -75,7 +75,7 @@ class BatchMaker:
         self.views = CachedViews(source, Preprocessor(), cache_bytes)
         # Ground-truth depth of both sources at the coarse size per frame set: rendering the truth of
         # a set costs about as much as decoding it (every camera is rendered), and a run draws each
-        # set many times. Two float maps and two masks per set (about 0.4 MB at the preview size).
+        # set many times. Two float maps and four masks per set (about 0.4 MB at the preview size).
         self._truth: dict[int, tuple[torch.Tensor, ...]] = {}
 
     def __call__(self, items: list[tuple[int, list[str]]], stage: int) -> Batch:
@@ -96,13 +96,14 @@ class BatchMaker:
             if want_truth:
                 truths.append(self._truth_depth(index))
         source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]) for k in range(4))) if depths else None
-        truth_depth = SourceDepth(*(torch.stack([d[k] for d in truths]) for k in range(4))) if truths else None
+        truth_depth = TruthDepth(*(torch.stack([d[k] for d in truths]) for k in range(6))) if truths else None
         return Batch(stack_views(lefts), stack_views(rights), stack_views(targets),
                      stack_views(fines) if fines else None, len(items[0][1]), source_depth, truth_depth)
 
     def _truth_depth(self, index: int) -> tuple[torch.Tensor, ...]:
         """Ground-truth depth of both sources at the coarse size, resampled onto their pinhole images
-        as `rig model eval` resamples it (nearest), and where it holds (depth, mask, depth, mask)."""
+        as `rig model eval` resamples it (nearest), where it holds and their person masks (the
+        TruthDepth fields: left depth, valid, person, then the right's)."""
         hit = self._truth.get(index)
         if hit is not None:
             return hit
@@ -114,7 +115,10 @@ class BatchMaker:
             if depth is None:
                 raise InferenceError(truth_missing(fs.key or f"frame set {index}"))
             z = torch.from_numpy(np.ascontiguousarray(self.views.pre.depth(depth, fs.cameras[cam], coarse), dtype=np.float32))
-            out += [z, z > 0]
+            mask = fs.masks.get(cam)
+            person = (torch.from_numpy(self.views.pre.depth(mask.astype(np.float32), fs.cameras[cam], coarse) > 0.5) if mask is not None
+                      else torch.zeros_like(z, dtype=torch.bool))
+            out += [z, z > 0, person]
         self._truth[index] = tuple(out)
         return self._truth[index]
 
