@@ -74,6 +74,7 @@ from inference.model.geometry import relative_pose, resize_intrinsics
 from inference.model.pipeline import STAGE1_OUTPUT_NAMES, SplatSAP, build_model, stage1_inputs
 from inference.runtime.metadata import read_file_metadata
 from inference.runtime.preprocess import InputPreparer, intrinsics, pose
+from inference.runtime.split import target_matrix
 from inference.runtime.synthetic import example_inputs
 
 log = logging.getLogger(__name__)
@@ -428,7 +429,7 @@ class TorchLivePipeline:
         missing = [n for n in STAGE1_OUTPUT_NAMES if n not in stage1_out]
         if missing:
             raise InferenceError(f"missing model inputs: {', '.join(missing)}")
-        target = tuple(t if isinstance(t, torch.Tensor) else self._upload(_matrix(t, n, name)) for t, n, name in
+        target = tuple(t if isinstance(t, torch.Tensor) else self._upload(target_matrix(t, n, name)) for t, n, name in
                        ((target_K, 3, "target_K"), (target_pose, 4, "target_pose")))
         args = tuple(stage1_out[n] for n in STAGE1_OUTPUT_NAMES) + self._sources(feeds) + target
         with self._lock, torch.no_grad():
@@ -471,15 +472,6 @@ def _reason(exc: BaseException) -> str:
 
 def _plain(fn: Callable) -> Callable:
     return lambda *args: tuple(fn(*args))
-
-
-def _matrix(value, n: int, name: str) -> np.ndarray:
-    a = np.asarray(value, dtype=np.float32)
-    if a.shape == (n, n):
-        a = a[None]
-    if a.shape != (1, n, n):
-        raise InferenceError(f"{name} must be a {n}x{n} matrix (or 1x{n}x{n}), got shape {a.shape}")
-    return a
 
 
 def parity(model: str | os.PathLike | None = None, device: str = "cuda", size: str | Sizes | None = LIVE_SIZE, *, compile: bool = False,

@@ -200,7 +200,7 @@ class SplitPipeline:
         return NovelView(np.ascontiguousarray(image[0].transpose(1, 2, 0)), depth[0, 0], ms)
 
     def _view(self, stage1_out, feeds, target_K, target_pose) -> tuple[np.ndarray, np.ndarray, float]:
-        target = {"target_K": _matrix(target_K, 3, "target_K"), "target_pose": _matrix(target_pose, 4, "target_pose")}
+        target = {"target_K": target_matrix(target_K, 3, "target_K"), "target_pose": target_matrix(target_pose, 4, "target_pose")}
         missing = [n for n in self.stage1_outputs if n not in stage1_out] + [n for n in self.view_info.inputs if n not in stage1_out and n not in target and n not in feeds]
         if missing:
             raise InferenceError(f"missing model inputs: {', '.join(missing)}")
@@ -234,7 +234,8 @@ def _part_info(session, path: Path, part: str) -> ModelInfo:
     return info
 
 
-def _matrix(value, n: int, name: str) -> np.ndarray:
+def target_matrix(value, n: int, name: str) -> np.ndarray:
+    """A target camera's K (n = 3) or pose (n = 4) as the model's (1, n, n) float32 input."""
     a = np.asarray(value, dtype=np.float32)
     if a.shape == (n, n):
         a = a[None]
