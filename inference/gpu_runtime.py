@@ -68,10 +68,8 @@ from calibration.camera import CameraModel
 from inference.config import ModelConfig, Sizes
 from inference.device import describe as describe_device, resolve_device, synchronize
 from inference.errors import InferenceError
-from inference.model.backbone import confidence_to_opacity
 from inference.model.checkpoint import file_digest, load_checkpoint, load_weights, model_from_record
-from inference.model.geometry import relative_pose, resize_intrinsics
-from inference.model.pipeline import STAGE1_OUTPUT_NAMES, SplatSAP, build_model, stage1_inputs
+from inference.model.pipeline import STAGE1_OUTPUT_NAMES, SplatSAP, build_model
 from inference.runtime.metadata import read_file_metadata
 from inference.runtime.preprocess import InputPreparer, intrinsics, pose
 from inference.runtime.split import target_matrix
@@ -88,29 +86,17 @@ PARTS = ("stage1", "view")
 # --- the model cut in two (what inference/export.py cuts the ONNX graph into) ------------------------
 
 def stage1_forward(model: SplatSAP, left_image, right_image, left_K, right_K, left_pose, right_pose):
-    """point_init + affine_transform: the stage-1 tensors (STAGE1_OUTPUT_NAMES, in order), as
-    SplatSAP.run computes them (the parity tests compare with its whole forward)."""
-    right_to_left = relative_pose(left_pose, right_pose)
-    (left_c, right_c, left_K_c, right_K_c), backbone = stage1_inputs(model, left_image, right_image, left_K, right_K)
-    pm = model.point_init(*backbone, right_to_left, None, None)
-    affine = model.affine_transform(pm, left_K_c, right_K_c, right_to_left, left_c, right_c)
-    return affine.points_left, affine.points_right, confidence_to_opacity(pm.conf_left), confidence_to_opacity(pm.conf_right)
+    """The stage-1 tensors (STAGE1_OUTPUT_NAMES, in order), as SplatSAP.run computes them."""
+    _, _, stage1 = model.run_stage1(left_image, right_image, left_K, right_K, left_pose, right_pose)
+    return tuple(stage1[n] for n in STAGE1_OUTPUT_NAMES)
 
 
 def view_forward(model: SplatSAP, points_left, points_right, opacity_left, opacity_right,
                  left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose):
     """depth_init onwards: (image clamped to [0, 1], depth) of the target view."""
-    s = model.cfg.sizes
-    left_to_target = relative_pose(target_pose, left_pose)
-    target_to_left = relative_pose(left_pose, target_pose)
-    target_to_right = relative_pose(right_pose, target_pose)
-    target_K_fine = resize_intrinsics(target_K, s.output, s.fine)
-    init = model.depth_init(points_left, points_right, opacity_left, opacity_right, left_to_target, target_K_fine)
-    refined = model.depth_refine(left_image, right_image, left_K, right_K, target_to_left, target_to_right, target_K_fine, init.depth)
-    colours = model.colour_init(left_image, right_image, left_K, right_K, target_to_left, target_to_right, target_K_fine, refined)
-    plane = model.gaussian_plane(colours, refined.depth, target_K_fine)
-    rendered = model.splatting(plane, target_K)
-    return rendered.image.clamp(0.0, 1.0), rendered.depth
+    stage1 = dict(zip(STAGE1_OUTPUT_NAMES, (points_left, points_right, opacity_left, opacity_right)))
+    out = model.run_view(stage1, left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose)
+    return out["image"], out["depth"]
 
 
 # --- which checkpoint, at which size ----------------------------------------------------------------

@@ -125,13 +125,16 @@ class SplatSAP(nn.Module):
 
     def run(self, left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose, left_depth=None, right_depth=None) -> dict:
         """The forward pass, returning every intermediate (for tests and training)."""
-        s = self.cfg.sizes
-        right_to_left = relative_pose(left_pose, right_pose)
-        left_to_target = relative_pose(target_pose, left_pose)
-        target_to_left = relative_pose(left_pose, target_pose)
-        target_to_right = relative_pose(right_pose, target_pose)
-        target_K_fine = resize_intrinsics(target_K, s.output, s.fine)
+        pm, affine, stage1 = self.run_stage1(left_image, right_image, left_K, right_K, left_pose, right_pose, left_depth, right_depth)
+        out = self.run_view(stage1, left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose)
+        return {**out, "point_maps": pm, "affine": affine,
+                "stage1": stage1}  # the tensors depth_init reads from stage 1 (STAGE1_OUTPUT_NAMES)
 
+    def run_stage1(self, left_image, right_image, left_K, right_K, left_pose, right_pose, left_depth=None, right_depth=None):
+        """What does not depend on the viewpoint: (point maps, affine transform, the stage-1 tensors
+        depth_init reads, named STAGE1_OUTPUT_NAMES). The export's stage1 part and the GPU runtime's
+        first function compute this."""
+        right_to_left = relative_pose(left_pose, right_pose)
         with self._stage("point_init"):
             (left_c, right_c, left_K_c, right_K_c), backbone_inputs = stage1_inputs(self, left_image, right_image, left_K, right_K)
             pm = self.point_init(*backbone_inputs, right_to_left, left_depth, right_depth)
@@ -139,7 +142,17 @@ class SplatSAP(nn.Module):
             affine = self.affine_transform(pm, left_K_c, right_K_c, right_to_left, left_c, right_c)
         with self._stage("depth_init"):
             stage1 = dict(zip(STAGE1_OUTPUT_NAMES, (affine.points_left, affine.points_right, confidence_to_opacity(pm.conf_left), confidence_to_opacity(pm.conf_right))))
-            init = self.depth_init(*stage1.values(), left_to_target, target_K_fine)
+        return pm, affine, stage1
+
+    def run_view(self, stage1: dict, left_image, right_image, left_K, right_K, left_pose, right_pose, target_K, target_pose) -> dict:
+        """The view at (target_K, target_pose) from stage 1's tensors: depth_init onwards."""
+        s = self.cfg.sizes
+        left_to_target = relative_pose(target_pose, left_pose)
+        target_to_left = relative_pose(left_pose, target_pose)
+        target_to_right = relative_pose(right_pose, target_pose)
+        target_K_fine = resize_intrinsics(target_K, s.output, s.fine)
+        with self._stage("depth_init"):
+            init = self.depth_init(*(stage1[n] for n in STAGE1_OUTPUT_NAMES), left_to_target, target_K_fine)
         with self._stage("depth_refine"):
             refined = self.depth_refine(left_image, right_image, left_K, right_K, target_to_left, target_to_right, target_K_fine, init.depth)
         with self._stage("colour_init"):
@@ -152,9 +165,6 @@ class SplatSAP(nn.Module):
             "image": rendered.image.clamp(0.0, 1.0),
             "depth": rendered.depth,
             "alpha": rendered.alpha,
-            "point_maps": pm,
-            "affine": affine,
-            "stage1": stage1,  # the tensors depth_init reads from stage 1 (STAGE1_OUTPUT_NAMES)
             "initial_depth": init,
             "refined": refined,
             "colours": colours,
