@@ -57,7 +57,9 @@ def test_sixty_seconds_at_30_hz_with_drops_jitter_and_drift():
 
 
 def test_a_noisy_link_and_dropped_pulses_never_pair_frames_wrongly():
-    trigger = {"drift_ppm": -200.0, "reply_jitter_us": 100.0, "corrupt_rate": 0.03, "delay_rate": 0.03, "delay_ms": 40.0,
+    # a held-back line waits three pulse periods, so later pulses overtake it however late a loaded
+    # machine sends them (at 40 ms, just over one period, a busy CI machine saw no overtaking at all)
+    trigger = {"drift_ppm": -200.0, "reply_jitter_us": 100.0, "corrupt_rate": 0.03, "delay_rate": 0.06, "delay_ms": 100.0,
                "drop_pulse_rate": 0.05, "seed": 8}
     cfg = parse_config(sim_rig(trigger))
     report = sync_check(cfg, 4.0)
