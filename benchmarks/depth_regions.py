@@ -42,7 +42,8 @@ def main() -> int:
     import numpy as np
     import torch
 
-    from inference.evaluate.model_eval import stage1_depths, oracle_twin
+    from inference.evaluate.model_eval import oracle_twin
+    from inference.train.depth_figures import stage1_depths
     from inference.metrics import covisibility, psnr
     from inference.model.checkpoint import load_checkpoint
     from inference.runtime.preprocess import pinhole

@@ -480,7 +480,7 @@ class Trainer:
         """Stage 1's depth AbsRel on held-out sets where the source has ground truth (simulator takes):
         on the pixels both sources see, on those only one sees, and on the person masks (as `rig model
         eval` reports them); monitoring only, no loss reads it."""
-        from inference.evaluate.model_eval import stage1_absrel
+        from inference.train.depth_figures import stage1_absrel
         from inference.train.stages import stage1_forward
 
         src, sizes = self.eval_data, self.cfg.model.sizes
