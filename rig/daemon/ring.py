@@ -120,6 +120,12 @@ def _align(n: int) -> int:
     return (n + 63) // 64 * 64
 
 
+def file_size(slots: int, height: int, width: int, channels: int, itemsize: int) -> int:
+    """Bytes of a ring file of this geometry (what `create` sizes it to): `rig doctor` weighs the rings
+    a rig's daemons will create against the room in /dev/shm."""
+    return HEADER_SIZE + slots * _align(PIXELS_AT + height * width * channels * itemsize)
+
+
 class _Mapped:
     """What writer and reader share: the geometry, and numpy views over the mapping."""
 
@@ -176,7 +182,7 @@ class FrameRing(_Mapped):
                             f"(64 bytes UTF-8 at most) is too long")
         shape = (height, width) if channels == 1 else (height, width, channels)
         stride = _align(PIXELS_AT + height * width * channels * DTYPES[code].itemsize)
-        size = HEADER_SIZE + slots * stride
+        size = file_size(slots, height, width, channels, DTYPES[code].itemsize)
         path.parent.mkdir(mode=0o755, parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         try:
