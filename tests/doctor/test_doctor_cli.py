@@ -1,0 +1,53 @@
+"""`rig doctor` as a user runs it: for real on this host, then bad input."""
+from __future__ import annotations
+
+import json
+import subprocess
+
+from rig.doctor import AREAS
+from tests.rig.cli_helpers import assert_one_line_error, run_rig
+
+
+def sim_config(tmp_path):
+    cfg = tmp_path / "rig.toml"
+    assert run_rig("config", "init", "--sim", cfg).returncode == 0
+    return cfg
+
+
+def test_doctor_runs_for_real_on_this_host(tmp_path):
+    """Every area of the simulated rig's checks on this very host, true values, exit 0 or 1 by the verdict;
+    the fix script is bash that `bash -n` accepts."""
+    cfg = sim_config(tmp_path)
+    fix = tmp_path / "fix.sh"
+    proc = run_rig("doctor", "-c", cfg, "--json", "--output", tmp_path / "takes", "--write-test-mb", "8", "--fix-script", fix)
+    doc = json.loads(proc.stdout)
+    assert proc.returncode == (1 if doc["verdict"] == "fail" else 0), proc.stderr
+    assert {c["area"] for c in doc["checks"]} == set(AREAS)
+    assert sum(doc["counts"].values()) == len(doc["checks"])
+    rate = next(c for c in doc["checks"] if c["name"].startswith("write rate"))
+    assert "(8.0 MiB in " in rate["measured"]
+    with open("/sys/devices/system/cpu/online") as f:
+        online = f.read().strip()
+    cpu = next(c for c in doc["checks"] if c["name"] == "CPUs")
+    n_online = sum(int(b) - int(a) + 1 if b else 1 for a, _, b in (p.partition("-") for p in online.split(",")))
+    assert 1 <= int(cpu["measured"].split()[0]) <= n_online  # the CPUs online, or a container's quota below that
+    assert subprocess.run(["bash", "-n", str(fix)]).returncode == 0
+    assert not (tmp_path / "takes").exists()  # the doctor measures, it makes nothing
+    text = run_rig("doctor", "-c", cfg, "--output", tmp_path, "--write-test-mb", "1")
+    lines = text.stdout.strip().splitlines()
+    assert lines[-1].startswith(doc["verdict"]) and text.returncode == proc.returncode
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".rig-doctor")] == []
+
+
+def test_bad_input_is_one_line_and_exit_2(tmp_path):
+    cfg = sim_config(tmp_path)
+    assert_one_line_error(run_rig("doctor", "-c", tmp_path / "nope.toml"), "no such config file")
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--minutes", "0"), "--minutes")
+    (tmp_path / "bench.json").write_text('{"ort_ms": {}}')
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--bench", tmp_path / "bench.json"), "not `rig model bench --json` output")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine\n")
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--fix-script", notes), "not a fix script")
+    assert notes.read_text() == "mine\n"  # never overwritten
+    (tmp_path / "file").write_text("")
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--output", tmp_path / "file"), "is a file")
