@@ -131,7 +131,7 @@ def time_solve(detections: DetectionSet, truth):
 def session_accuracy(n_cameras: int, width: int, height: int) -> dict:
     """Errors against the truth of a session's calibration, from all stations and from its first
     parts (a capture with fewer --views), with the time per rendered and detected image."""
-    from rig.cameras.sim import sim_rig_config
+    from rig.sim.rig_config import sim_rig_config
     from rig.config import parse_config
     from simulator.calibration_session import CalibrationSession
     from simulator.sensor import NOMINAL_EXPOSURE_S

@@ -28,7 +28,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from rig.cameras.sim import sim_rig_config  # noqa: E402
+from rig.sim.rig_config import sim_rig_config  # noqa: E402
 from rig.config import dump_config, load_config, parse_config  # noqa: E402
 
 

@@ -329,7 +329,7 @@ def _check_timing(cameras: list[CameraConfig], trigger: Optional[TriggerConfig],
 def _check_sim_options(where: str, table: dict, kind: str, problems: _Problems) -> None:
     """Simulator options are validated by the simulator, which owns their meaning; one key at a time,
     so that every bad key is reported."""
-    from rig.cameras.sim import check_options
+    from rig.sim.options import check_options
 
     for key, value in table.items():
         try:

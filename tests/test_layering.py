@@ -8,7 +8,9 @@
   imports torch or the export tool chain, directly or through anything it imports; the one exception
   is `rig live --device cuda`, whose torch GPU runtime (inference.gpu_runtime) rig.live.app imports
   inside the function that chooses it, never at module level.
-- No import cycles between modules.
+- Inside `rig`, its sub-packages (and top-level modules) stand in layers (RIG_LAYERS): each imports
+  only its own and those of lower layers, and every one has its place in the table.
+- No import cycles between modules, nor between the sub-packages of a package.
 
 The checks are plain functions over an import graph; the last tests feed them a small tree with a
 wrong import to show that each check fails when it should.
@@ -25,9 +27,28 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("common", "calibration", "sync", "simulator", "inference", "rig")
 LAYER = {"common": 0, "calibration": 1, "sync": 1, "simulator": 2, "inference": 3, "rig": 4}
-SIMULATOR_GATES = ("rig.cameras.sim", "rig.commands.demo", "rig.commands._demo_gopro", "rig.commands.sim")
+SIMULATOR_GATES = ("rig.sim", "rig.cameras.sim", "rig.boards.sim", "rig.truth.simulator",
+                   "rig.commands.demo", "rig.commands._demo_gopro", "rig.commands.sim")
 LIVE_PATH = ("rig.cameras", "rig.capture", "rig.storage", "rig.live", "rig.config", "rig.errors", "inference.runtime")
 HEAVY = ("torch", "torchvision", "onnx", "onnxscript")  # training and export only
+# rig's sub-packages and top-level modules, bottom to top. The config asks the camera backends what
+# they cannot do; the daemons serve cameras and boards; storage writes what capture hands it; live
+# shows what capture and storage give; the doctor looks at all of it; the commands drive everything.
+RIG_LAYERS = (
+    ("rig", "rig.errors"),
+    ("rig.progress", "rig.http_access"),
+    ("rig.sim", "rig.truth"),  # the simulator as rig sees it; a take's ground truth
+    ("rig.cameras", "rig.boards"),  # camera and trigger-board backends, by URI scheme
+    ("rig.config",),
+    ("rig.daemon",),
+    ("rig.storage",),
+    ("rig.capture",),
+    ("rig.live",),
+    ("rig.doctor",),
+    ("rig.commands",),
+    ("rig.cli",),
+    ("rig.__main__",),
+)
 # (importer, imported): lazy imports (inside a function) of the live path that may reach torch.
 LAZY_GPU_IMPORTS = {("rig.live.app", "inference.gpu_runtime")}
 
@@ -124,6 +145,39 @@ def layer_violations(graph: Graph) -> list[str]:
     return out
 
 
+def _unit(mod: str) -> str:
+    """The sub-package (or top-level module) of a package that `mod` lies in: `rig.capture.session` -> `rig.capture`."""
+    return ".".join(mod.split(".")[:2])
+
+
+def rig_layer_violations(graph: Graph, layers=RIG_LAYERS) -> list[str]:
+    level = {unit: i for i, units in enumerate(layers) for unit in units}
+    out = []
+    for mod, targets in graph.imports.items():
+        if _package(mod) != "rig":
+            continue
+        a = _unit(mod)
+        if a not in level:
+            out.append(f"{graph.files[mod]}: {a} has no place in RIG_LAYERS")
+            continue
+        for target, line in targets.items():
+            b = _unit(target)
+            if _package(target) == "rig" and b != a and b in level and level[b] >= level[a]:
+                out.append(f"{graph.files[mod]}:{line}: {a} (layer {level[a]}) imports {target} (layer {level[b]})")
+    return out
+
+
+def subpackage_cycles(graph: Graph) -> list[list[str]]:
+    """Cycles between the sub-packages of a package (`inference.train` <-> `inference.evaluate`)."""
+    units = Graph()
+    for mod, targets in graph.imports.items():
+        edges = units.imports.setdefault(_unit(mod), {})
+        for target, line in targets.items():
+            if target in graph.imports and _package(target) == _package(mod) and _unit(target) != _unit(mod):
+                edges.setdefault(_unit(target), line)
+    return cycles(units)
+
+
 def simulator_gate_violations(graph: Graph) -> list[str]:
     return [f"{graph.files[mod]}:{line}: rig imports {target} outside the sim:// backend and the sim commands"
             for mod, targets in graph.imports.items() if _package(mod) == "rig" and not _within(mod, SIMULATOR_GATES)
@@ -218,6 +272,14 @@ def test_no_import_cycles(graph):
     assert cycles(graph) == []
 
 
+def test_rig_sub_packages_import_only_lower_layers(graph):
+    assert rig_layer_violations(graph) == []
+
+
+def test_no_cycles_between_sub_packages(graph):
+    assert subpackage_cycles(graph) == []
+
+
 # ---- the checks themselves fail on a wrong import -------------------------------------------------
 
 def _tree(tmp_path: Path, files: dict[str, str]) -> Graph:
@@ -272,6 +334,29 @@ def test_an_import_cycle_is_caught(tmp_path):
     assert cycles(g) == [["calibration.report", "calibration.solve"]]
 
 
+def test_a_rig_sub_package_importing_a_higher_one_is_caught(tmp_path):
+    g = _tree(tmp_path, {"rig/storage/dataset.py": "def f():\n    from rig.capture.session import RigSession\n",
+                         "rig/capture/session.py": "from rig.storage import dataset\nclass RigSession: ...\n",
+                         "rig/cameras/sim.py": "from rig.boards import sim\n", "rig/boards/sim.py": ""})
+    found = rig_layer_violations(g)
+    assert len(found) == 2
+    assert "rig/storage/dataset.py:2: rig.storage (layer 6) imports rig.capture.session (layer 7)" in found[0] + found[1]
+    assert "rig.cameras (layer 3) imports rig.boards.sim (layer 3)" in found[0] + found[1]
+
+
+def test_a_rig_sub_package_without_a_layer_is_caught(tmp_path):
+    g = _tree(tmp_path, {"rig/render/take.py": "from rig.storage import dataset\n", "rig/storage/dataset.py": ""})
+    assert [line.split(": ", 1)[1] for line in rig_layer_violations(g)] == ["rig.render has no place in RIG_LAYERS"]
+
+
+def test_a_cycle_between_sub_packages_is_caught(tmp_path):
+    g = _tree(tmp_path, {"inference/train/trainer.py": "def f():\n    from inference.evaluate.model_eval import absrel\n",
+                         "inference/train/data.py": "",
+                         "inference/evaluate/model_eval.py": "from inference.train.data import FrameSource\n"})
+    assert cycles(g) == []  # no module imports itself back: only the sub-packages form a cycle
+    assert subpackage_cycles(g) == [["inference.evaluate", "inference.train"]]
+
+
 def test_imports_for_annotations_only_do_not_count(tmp_path):
     g = _tree(tmp_path, {"calibration/camera.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from rig.config import X\n"})
     assert layer_violations(g) == []
@@ -285,6 +370,7 @@ def test_relative_imports_are_resolved(tmp_path):
 
 if __name__ == "__main__":  # print the findings on the real tree
     g = read_graph(REPO)
-    for line in layer_violations(g) + simulator_gate_violations(g) + heavy_on_live_path(g) + [" <-> ".join(c) for c in cycles(g)]:
+    found = layer_violations(g) + rig_layer_violations(g) + simulator_gate_violations(g) + heavy_on_live_path(g)
+    for line in found + [" <-> ".join(c) for c in cycles(g) + subpackage_cycles(g)]:
         print(line)
     sys.exit(0)

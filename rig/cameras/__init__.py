@@ -11,7 +11,7 @@ from types import ModuleType
 
 from rig.errors import BackendError
 
-_NOT_BACKENDS = {"base", "pixels", "gopro_http", "gopro_card", "video_reader"}  # helpers, not backends
+_NOT_BACKENDS = {"base", "pixels", "gopro_http", "gopro_card", "video_reader", "discovery"}  # helpers, not backends
 
 
 def _backend_modules() -> dict[str, str]:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Optional
 
 from sync.frames import Frame
 
-if TYPE_CHECKING:  # annotations only: rig.config imports the sim backend to check [sim] options
+if TYPE_CHECKING:  # annotations only: rig.config imports the camera backends to check a camera's settings
     from rig.config import CameraConfig
 
 

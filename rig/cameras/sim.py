@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import heapq
 import itertools
-import os
 import queue
 import threading
 import time
 import zlib
-from typing import TYPE_CHECKING, Any, Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
@@ -27,20 +26,15 @@ from rig.cameras.base import Camera, DeviceInfo
 from rig.cameras.pixels import demosaic, from_rgb, is_bayer
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError
 from rig.progress import ProgressBar
+from rig.sim.clock import SIM_EPOCH_NS
 from simulator.options import with_defaults
-from simulator.rig import camera_names
 from sync.frames import Frame, monotonic_ns
 
-if TYPE_CHECKING:  # annotations only: rig.config imports the sim backend to check [sim] options
+if TYPE_CHECKING:  # annotations only: rig.config imports the camera backends to check a camera's settings
     from rig.config import CameraConfig
 
 SCHEME = "sim"
 DEFAULT_NAMES = ("left", "sup1", "sup2", "sup3", "sup4", "right")
-
-# Simulated time zero: scene time t = (monotonic_ns - SIM_EPOCH_NS) / 1e9 while running live. Camera
-# daemons of one rig are separate processes that must show the same scene instant at the same host
-# time: `rig up` gives them all its own zero in $RIG_SIM_EPOCH_NS (the monotonic clock is system-wide).
-SIM_EPOCH_NS = int(os.environ.get("RIG_SIM_EPOCH_NS") or 0) or monotonic_ns()
 
 ImageSource = Callable[[float, float, np.random.Generator], np.ndarray]
 
@@ -301,145 +295,3 @@ class SimCamera(Camera):
             self._out.put_nowait(frame)
         except queue.Full:
             pass  # host did not keep up: this frame is lost, the id gap shows it
-
-
-def scene_led(config) -> Optional[Callable[[bool, int], None]]:
-    """The simulated scene's flash LED as an output of the emulated board (`on`, host ns), or None
-    when the scene has none (`[sim] led = true`). Cameras in this process see it."""
-    if not (getattr(config, "sim", None) or {}).get("led"):
-        return None
-    from simulator.sensor import sim_rig
-
-    led = sim_rig(config).led
-    return lambda on, host_ns: led.set(bool(on), (host_ns - SIM_EPOCH_NS) / 1e9)
-
-
-def emulated_trigger_board(uri: str, options: dict, outputs: list[Callable[[int, int], None]]):
-    """The emulated trigger board of a `sim://` trigger URI, opened, its pulse output wired to
-    `outputs` (the hardware-trigger inputs of sim cameras); the session talks to it over its port
-    (`.url`) as to a real board. `options`: the trigger's `sim = {...}` table."""
-    from simulator.trigger_board import TriggerBoardEmulator
-
-    emulator = TriggerBoardEmulator(options, board_id="SIM-" + (uri.split("://", 1)[1].strip("/") or "trigger").upper())
-    for output in outputs:
-        emulator.add_pulse_output(output)
-    try:
-        emulator.open()
-    except BaseException:
-        emulator.close()
-        raise
-    return emulator
-
-
-# The calibration board that suits a simulated rig: A0 size (1.155 x 0.84 m), what a rig whose
-# cameras stand 3.6 m from the volume needs (docs/calibration.md, "Boards").
-SIM_RIG_BOARD = {"type": "charuco", "squares_x": 11, "squares_y": 8, "square_size": 0.105, "marker_size": 0.078,
-                 "dictionary": "DICT_5X5_100"}
-
-
-def board_toml(board: dict) -> str:
-    """A board file (`--board`) for `board`."""
-    import json
-
-    return "".join(f"{k} = {json.dumps(v)}\n" for k, v in board.items())
-
-
-def sim_rig_config(n_cameras: int = 2, width: int = 640, height: int = 360, fps: float = 30.0,
-                   trigger: str = "hardware", pixel_format: str = "RGB8") -> dict[str, Any]:
-    """The configuration of a simulated rig, as `rig config init --sim` and `rig demo` write it: cameras named as the virtual rig names them, fired by the emulated trigger board."""
-    cameras = []
-    for i, name in enumerate(camera_names(n_cameras)):
-        role = name if name in ("left", "right") else "supervision"
-        cameras.append({
-            "name": name,
-            "uri": f"sim://{name}",
-            "role": role,
-            "width": width,
-            "height": height,
-            "pixel_format": pixel_format,
-            "fps": fps,
-            "trigger": trigger,
-            "exposure_us": 5000.0,
-            "gain": 0.0,
-            "sim": {"seed": i},
-        })
-    cfg = {"rig": {"name": f"sim-{n_cameras}cam", "storage": "recordings"}, "sim": {"seed": 0, "people": 2, "loop_frames": 30}, "cameras": cameras}
-    if trigger == "hardware":
-        cfg["trigger"] = {"uri": "sim://trigger", "rate_hz": fps, "pulse_width_us": 100.0}
-    return cfg
-
-
-# ---- the simulator as the rest of rig sees it: everything rig needs of the simulator goes through
-# these functions, so that the simulator stays out of the real-camera path (tests/test_layering.py).
-
-def calibration_session(settings: list, board) -> Optional[Any]:
-    """Switch the sim:// cameras among `settings` to a calibration session, for `rig calibrate
-    capture`: the simulated scene becomes `board` (the board file the user gave) held by someone at
-    a series of stations planned to cover every camera's image and to be seen by several cameras at
-    once, with nobody else in the scene, whatever the config's `[sim]` table says about people, a
-    board or a pre-rendered loop. The cameras are fired by software trigger, and the k-th
-    synchronised view shows the k-th station, so the capture depends neither on start-up time nor on
-    how fast the host renders.
-
-    `settings` are the CameraConfig copies the capture opens, each with `.rig` (the whole config);
-    they are changed in place. Returns the session (`.sets`: the views it offers, `.describe()`,
-    `.truth`: the cameras' exact calibration), or None when no camera is simulated.
-    """
-    sims = [s for s in settings if s.scheme == SCHEME]
-    if not sims:
-        return None
-    rig = getattr(sims[0], "rig", None)
-    if rig is None:
-        raise ConfigError("a simulated calibration session needs the rig configuration of its cameras")
-    from simulator.calibration_session import CalibrationSession
-    from simulator.errors import SimulatorError
-
-    try:
-        session = CalibrationSession(rig, board)
-    except SimulatorError as exc:
-        raise ConfigError(str(exc)) from None
-    for s in sims:
-        s.calibration_session = session
-        s.trigger = "software"
-    return session
-
-
-def check_options(table: dict, kind: str) -> None:
-    """Validate a `[sim]` table of a rig config (`kind`: "rig", "camera" or "trigger"); ValueError
-    names the bad key. The simulator owns what the options mean."""
-    from simulator.options import validate_options
-
-    validate_options(table, kind)
-
-
-def take_truth(cfg) -> dict:
-    """What a take of simulated cameras carries so that its ground truth can be rendered later:
-    the scene's options and the exact cameras. Empty when the rig has no simulated camera."""
-    if not any(c.scheme == "sim" for c in cfg.cameras):
-        return {}
-    from simulator.sensor import sim_rig
-
-    rig = sim_rig(cfg)
-    return {"simulator": {"scene": dict(rig.options), "cameras": rig.calibration.to_dict()["cameras"]}}
-
-
-class GroundTruth:
-    """Renders a simulated take's exact depth on demand from what `take_truth` recorded."""
-
-    def __init__(self, scene_options: dict):
-        from simulator.scene import Scene
-
-        self.scene = Scene.from_options(scene_options)
-
-    def depth(self, model, sim_time_s: float):
-        """Depth in metres along the optical axis (0 = nothing) seen by `model` at scene time."""
-        from simulator.render import render
-
-        return render(self.scene, model, float(sim_time_s)).depth
-
-    def depth_and_mask(self, model, sim_time_s: float):
-        """Depth (metres, 0 = nothing) and the person mask (bool) seen by `model` at scene time."""
-        from simulator.render import render
-
-        r = render(self.scene, model, float(sim_time_s))
-        return r.depth, r.mask

@@ -17,7 +17,7 @@ from rig.cameras import live_cameras
 from rig.config import RigConfig
 from rig.errors import ConfigError
 from rig.progress import StatusLine, rate, rate_text
-from rig.cameras.sim import take_truth
+from rig.truth import take_truth
 from rig.capture.cards import CardShutters
 from rig.capture.session import TAKE_NEEDS_LIVE
 from rig.storage.layout import FLASHES

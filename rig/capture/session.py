@@ -38,9 +38,10 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Optional
 
 from rig.cameras import live_cameras, open_camera as _open_in_process, records_to_card
+from rig.daemon.board_client import open_board  # the board's daemon when one owns it, else in-process
 from rig.daemon.client import open_camera as _open_camera  # a camera's daemon when one serves it, else in-process
 from rig.config import RigConfig
-from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceError
+from rig.errors import CameraDisconnected, CameraTimeout, DeviceError
 from sync.board import BoardEvent, Pulse, TriggerBoard
 from sync.errors import TriggerBoardError
 from sync.frames import FrameSet, monotonic_ns
@@ -90,7 +91,7 @@ class RigSession:
         self.card_cameras: dict[str, Any] = {}  # those that record to their own card (no frames)
         self.live_configs = live_cameras(config.cameras, TAKE_NEEDS_LIVE)
         self.board: Optional[TriggerBoard] = None
-        self.emulator = None  # the emulated board of a sim:// trigger
+        self.emulator = None  # the device behind the board, closed after it (the emulated board of sim://trigger)
         self.grouper: Optional[FrameGrouper] = None
         self.events: list[SessionEvent] = []
         self.frames_delivered: dict[str, int] = {c.name: 0 for c in self.live_configs}
@@ -130,30 +131,9 @@ class RigSession:
         return self
 
     def _open_board(self) -> None:
-        trig = self.config.trigger
+        # first the board's daemon, when one owns it (rig up): pulses and clock then come from there
         hardware = [c for c in self.live_configs if c.trigger == "hardware"]
-        from rig.daemon.board_client import RemoteBoard, board_daemon
-
-        owner = board_daemon(self.config.name)
-        if owner is not None:  # the board's daemon owns it (rig up): pulses and clock come from there
-            self.board = RemoteBoard(self.config.name, owner)
-            self._connect_board()
-            return
-        if trig.uri.startswith("sim://"):
-            from rig.cameras.sim import emulated_trigger_board, scene_led  # only sim rigs need the simulator
-
-            # sim cameras, in this process or in daemons (their trigger input takes the emulated edges)
-            not_sim = [c.name for c in hardware if c.scheme not in ("sim", "daemon")]
-            if not_sim:
-                raise ConfigError(f"trigger.uri: an emulated board ({trig.uri}) cannot trigger real cameras ({', '.join(not_sim)})")
-            self.emulator = emulated_trigger_board(trig.uri, trig.sim, [self._trigger_input(c.name) for c in hardware])
-            led = scene_led(self.config)
-            if led is not None:  # the simulated scene shows the board's LED to its cameras
-                self.emulator.add_led_output(led)
-            url = self.emulator.url
-        else:
-            url = trig.uri
-        self.board = TriggerBoard(url)
+        self.board, self.emulator = open_board(self.config, {c.name: self._trigger_input(c.name) for c in hardware})
         self._connect_board()
 
     def _connect_board(self) -> None:

@@ -35,7 +35,7 @@ def _free_port(kind: int) -> int:
 def gopro_rig(n_gopros: int, width: int, height: int, fps: float) -> dict:
     """The rig's configuration: the simulated rig of 2 + N cameras, its supervision cameras made
     GoPros on loopback emulators (a control port and a stream port each, free on this host)."""
-    from rig.cameras.sim import sim_rig_config
+    from rig.sim.rig_config import sim_rig_config
 
     data = sim_rig_config(n_cameras=2 + n_gopros, width=width, height=height, fps=fps)
     data["rig"]["name"] = f"sim-gopro-{n_gopros}"
@@ -89,7 +89,7 @@ def alignment_truth(take: Path, cameras: list, starts: dict[str, float]) -> dict
 def run(args: argparse.Namespace, run_step) -> int:
     """The demo with GoPros; `run_step(argv)` runs one `rig` command in this process (echoed), so the
     emulators this process serves answer it."""
-    from rig.cameras.sim import SIM_EPOCH_NS
+    from rig.sim.clock import SIM_EPOCH_NS
     from rig.config import dump_config, load_config, parse_config
     from rig.commands._demo_disk import check_space, mb, written
     from rig.commands.record import alignment_lines

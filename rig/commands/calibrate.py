@@ -510,7 +510,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     # that shows the board given here at stations through the volume.
     session = None
     if any(s.scheme == "sim" for s in settings):
-        from rig.cameras.sim import calibration_session
+        from rig.sim.calibration import calibration_session
 
         session = calibration_session(settings, board)
     limit = args.max_frames if session is None else min(args.max_frames, session.sets)

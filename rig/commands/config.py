@@ -32,7 +32,7 @@ def register(sub) -> None:
 
 def cmd_init(args: argparse.Namespace) -> int:
     from common.files import atomic_write_bytes
-    from rig.cameras.sim import SIM_RIG_BOARD, board_toml, sim_rig_config
+    from rig.sim.rig_config import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.commands._paths import output_file
     from rig.config import dump_config, parse_config
     from rig.errors import StorageError

@@ -112,7 +112,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from calibration.boards import board_from_dict
     from calibration.camera import RigCalibration
     from calibration.compare import describe, errors_against_truth
-    from rig.cameras.sim import SIM_RIG_BOARD, board_toml, sim_rig_config
+    from rig.sim.rig_config import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.config import dump_config, parse_config
     from rig.commands._demo_views import render_novel_views, render_strip
     from simulator.calibration_session import CalibrationSession

@@ -1,5 +1,5 @@
 """`rig discover`: list the devices every backend can see; with --network, the camera daemons that
-answer on mDNS (rig.daemon.discovery), on this host and others."""
+answer on mDNS (rig.cameras.discovery), on this host and others."""
 from __future__ import annotations
 
 import argparse
@@ -57,7 +57,7 @@ def cmd_discover(args: argparse.Namespace) -> int:
 
 def _network(args: argparse.Namespace) -> int:
     from rig.commands._output import emit_json
-    from rig.daemon.discovery import browse
+    from rig.cameras.discovery import browse
     from rig.errors import ConfigError
 
     timeout = 3.0 if args.timeout is None else args.timeout

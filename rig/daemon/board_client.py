@@ -18,6 +18,7 @@ import time
 from typing import Any, Callable, Optional
 from urllib.parse import urlencode, urlsplit
 
+from rig.boards import open_board as open_in_process
 from rig.daemon import paths
 from sync.board import BoardEvent, Pulse
 from sync.clock import ClockFit
@@ -32,6 +33,16 @@ def board_daemon(rig: str) -> Optional[dict[str, Any]]:
     """The info of the live trigger board daemon of this rig on this host, or None."""
     info = paths.read_json(paths.board_info_path(rig))
     return info if info is not None and paths.pid_alive(info.get("pid")) else None
+
+
+def open_board(config, inputs: dict[str, Callable[[int, int], None]]):
+    """The rig's trigger board through its daemon when one owns it on this host, else opened in this
+    process by its backend (rig.boards), with the cameras of `inputs` opened here too; the board and
+    the device behind it to close after it (None through a daemon)."""
+    owner = board_daemon(config.name)
+    if owner is not None:
+        return RemoteBoard(config.name, owner), None
+    return open_in_process(config.trigger, inputs, config)
 
 
 class MirrorClock:

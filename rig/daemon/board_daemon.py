@@ -27,9 +27,10 @@ from fastapi import FastAPI
 from fastapi.responses import JSONResponse
 
 from common.files import atomic_write_json
+from rig.boards import open_board
+from rig.cameras.daemon import TRIGGER
 from rig.config import RigConfig
 from rig.daemon import paths
-from rig.daemon.camera_daemon import TRIGGER
 from rig.errors import ConfigError, DeviceError
 from rig.http_access import AccessGuard
 from sync.board import BoardEvent, Pulse, TriggerBoard
@@ -123,15 +124,9 @@ class BoardDaemon:
         from rig.daemon.api import ApiServer
 
         trig = self.config.trigger
-        if trig.uri.startswith("sim://"):
-            from rig.cameras.sim import emulated_trigger_board
-
-            hardware = [c.name for c in self.config.cameras if c.trigger == "hardware"]
-            self.emulator = emulated_trigger_board(trig.uri, trig.sim, [lambda i, ns, n=n: self._fire(n, i, ns) for n in hardware])
-            url = self.emulator.url
-        else:
-            url = trig.uri
-        self.board = TriggerBoard(url)
+        # the cameras are in their daemons: an emulated board fires their trigger inputs by datagram
+        hardware = [c.name for c in self.config.cameras if c.trigger == "hardware"]
+        self.board, self.emulator = open_board(trig, {n: (lambda i, ns, n=n: self._fire(n, i, ns)) for n in hardware})
         self.board.subscribe(on_pulse=self._on_pulse, on_event=self._on_event)
         try:
             self.board.connect()

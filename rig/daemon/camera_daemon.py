@@ -14,7 +14,7 @@ the daemon itself stays up. Beside the ring:
   as it begins to copy each frame into the ring, the daemon sends each subscriber one byte, so a
   reader blocked on its socket wakes while the frame is copied instead of polling the ring;
 - its info file (rig.daemon.paths), written once all of that serves, removed at a clean exit;
-- an mDNS advertisement (`_rigcam._tcp.local.`, rig.daemon.discovery), unless disabled;
+- an mDNS advertisement (`_rigcam._tcp.local.`, rig.cameras.discovery), unless disabled;
 - sd_notify READY once the camera acquires and WATCHDOG from the acquisition loop (rig.daemon.notify),
   so systemd restarts a daemon whose loop hangs.
 
@@ -31,7 +31,6 @@ import dataclasses
 import json
 import os
 import socket
-import struct
 import threading
 import time
 from typing import Any, Optional
@@ -40,13 +39,13 @@ import numpy as np
 
 from common.files import atomic_write_json
 from rig.cameras import open_camera
+from rig.cameras.daemon import TRIGGER
 from rig.config import RigConfig
 from rig.daemon import paths
 from rig.daemon.ring import FrameRing, RingError
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceError
 from sync.frames import monotonic_ns
 
-TRIGGER = struct.Struct("<cqq")  # kind (b"S" | b"H"), pulse index, host time ns
 WATCH_S = 5.0  # a doorbell subscription lapses unless renewed
 # A reader may fall behind (a busy host: a session's threads wait for the GIL, its disk for writes): the
 # ring keeps about a second of frames, within 64 MB, and at least 8.
@@ -251,7 +250,7 @@ class CameraDaemon:
 
     def _advertise(self) -> None:
         try:
-            from rig.daemon.discovery import DaemonInfo, advertise
+            from rig.cameras.discovery import DaemonInfo, advertise
 
             device = getattr(self.camera, "device_info", None)
             info = DaemonInfo(rig=self.config.name, camera=self.cfg.name, role=self.cfg.role, uri=self.cfg.uri,

@@ -37,13 +37,13 @@ def rig_calibration(cfg, calibration: Optional[Path], replay: Optional[ReplaySou
         if seq.ground_truth is not None:
             return seq.ground_truth
         raise ConfigError(f"--replay: {seq.root} has no calibration.json (give --calibration)")
-    from rig.cameras.sim import take_truth
+    from rig.truth import take_truth, truth_cameras
 
     truth = take_truth(cfg)
     if truth:
         if notes is not None:
             notes.append("no calibration named; the simulated cameras render with their exact models")
-        return RigCalibration.from_dict({"version": 1, "cameras": truth["simulator"]["cameras"]})
+        return RigCalibration.from_dict({"version": 1, "cameras": truth_cameras(truth)})
     raise ConfigError(f"{cfg.path or 'config'}: no calibration (set rig.calibration, or give --calibration; `rig calibrate run` makes one)")
 
 

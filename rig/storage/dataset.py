@@ -26,6 +26,7 @@ from rig.cameras.pixels import rgb8
 from rig.storage.index import scan_index
 from rig.storage.layout import CALIBRATION_COPY, SequenceError, SequenceMeta
 from rig.storage.netpbm import NetpbmError, read_netpbm
+from rig.truth import renderer, truth_cameras
 
 
 @dataclass
@@ -47,9 +48,9 @@ class Sequence:
         self.rows = scan_index(self.root).rows
         cal = self.root / CALIBRATION_COPY
         self.calibration: Optional[RigCalibration] = RigCalibration.load(cal) if cal.exists() else None
-        sim = self.meta.extra.get("simulator")
+        exact = truth_cameras(self.meta.extra)
         # simulator takes: the exact cameras and the scene, to render ground-truth depth on demand
-        self.ground_truth: Optional[RigCalibration] = RigCalibration.from_dict({"version": 1, "cameras": sim["cameras"]}) if sim else None
+        self.ground_truth: Optional[RigCalibration] = RigCalibration.from_dict({"version": 1, "cameras": exact}) if exact else None
         self._truth = None
 
     @property
@@ -137,10 +138,8 @@ class Sequence:
         """Ground-truth depth and person mask of a simulator frame at the chosen size ((None, None) for a recorded take)."""
         if self.ground_truth is None or sim_time_s is None:
             return None, None
-        from rig.cameras.sim import GroundTruth
-
         if self._truth is None:
-            self._truth = GroundTruth(self.meta.extra["simulator"]["scene"])
+            self._truth = renderer(self.meta.extra)
         model = self.ground_truth[cam]
         if size is not None:
             model = model.scaled(*size)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from rig.cameras.sim import sim_rig_config
+from rig.sim.rig_config import sim_rig_config
 from rig.config import dump_config, parse_config
 from rig.storage.layout import INDEX
 from rig.storage.validate import validate

@@ -1,4 +1,4 @@
-"""mDNS discovery of camera daemons (rig.daemon.discovery, `rig discover --network`), on loopback.
+"""mDNS discovery of camera daemons (rig.cameras.discovery, `rig discover --network`), on loopback.
 
 The advertisements come from another process (as from a daemon); no real daemon runs. Every test
 uses rig names of its own, so daemons advertised by anything else on this host do not disturb it.
@@ -18,7 +18,7 @@ import uuid
 import pytest
 
 from rig.cli import main
-from rig.daemon.discovery import SERVICE_TYPE, DaemonInfo, advertise, browse, instance_name
+from rig.cameras.discovery import SERVICE_TYPE, DaemonInfo, advertise, browse, instance_name
 from tests.rig.cli_helpers import REPO, assert_one_line_error, run_rig
 
 LOOPBACK = ["127.0.0.1"]
@@ -47,7 +47,7 @@ JUNK = [
 ADVERTISER = r"""
 import json, sys
 from zeroconf import ServiceInfo, Zeroconf
-from rig.daemon.discovery import SERVICE_TYPE, DaemonInfo, advertise
+from rig.cameras.discovery import SERVICE_TYPE, DaemonInfo, advertise
 spec = json.loads(sys.argv[1])
 ads = [advertise(DaemonInfo(**d), interfaces=["127.0.0.1"], wait=False) for d in spec["daemons"]]
 zc = Zeroconf(interfaces=["127.0.0.1"])
@@ -219,7 +219,7 @@ def test_bad_arguments_exit_2_with_one_line(args, fragment):
 def test_advertised_addresses():
     import ipaddress
 
-    from rig.daemon.discovery import _addresses
+    from rig.cameras.discovery import _addresses
 
     assert _addresses("127.0.0.1", None) == ["127.0.0.1"]
     assert _addresses("0.0.0.0", ["127.0.0.1"]) == ["127.0.0.1"]  # wildcard API, advertised on loopback only

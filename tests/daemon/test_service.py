@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from rig.cameras.sim import sim_rig_config
+from rig.sim.rig_config import sim_rig_config
 from rig.config import dump_config, load_config, parse_config
 from rig.daemon import notify, service
 from tests.rig.cli_helpers import REPO, assert_one_line_error, run_rig

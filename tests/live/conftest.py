@@ -377,7 +377,7 @@ def wait_until(predicate, timeout: float = 5.0, interval: float = 0.02, what: st
 def sim_live(tiny_onnx):
     """A LiveApp on a simulated six-camera rig (320x180 at 15 Hz, triggered by the emulated board)
     rendering with the test-size model; one per test run (its start-up is a few seconds)."""
-    from rig.cameras.sim import sim_rig_config
+    from rig.sim.rig_config import sim_rig_config
     from rig.config import parse_config
     from rig.live.app import LiveApp
 

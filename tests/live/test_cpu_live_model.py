@@ -55,7 +55,7 @@ def test_the_unscaled_part_is_the_same_export_as_stage_1():
 
 
 def test_rig_live_on_a_cpu_runs_the_live_size_and_says_so(tmp_path):
-    from rig.cameras.sim import sim_rig_config
+    from rig.sim.rig_config import sim_rig_config
     from rig.config import parse_config
     from rig.live.app import SCALE_SEARCH_EVERY, LiveApp
 

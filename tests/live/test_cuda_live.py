@@ -28,7 +28,7 @@ def take(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def rig_toml(tmp_path_factory) -> Path:
-    from rig.cameras.sim import sim_rig_config
+    from rig.sim.rig_config import sim_rig_config
     from rig.config import dump_config, parse_config
 
     path = tmp_path_factory.mktemp("cuda-live-cli") / "rig.toml"

@@ -96,7 +96,7 @@ def test_a_new_viewpoint_shows_in_the_next_frames_and_a_bad_one_changes_nothing(
 
 
 def test_a_camera_vanishing_shows_in_the_health_at_once_and_it_resumes_when_the_camera_is_back(tiny_onnx):
-    from rig.cameras.sim import sim_rig_config
+    from rig.sim.rig_config import sim_rig_config
     from rig.config import parse_config
     from rig.live.app import LiveApp
 

@@ -20,7 +20,7 @@ SHIPPED_LIVE = REPO / "models" / "splat-sap-live.onnx"  # rig model eval runs it
 def test_a_live_view_at_a_supervision_camera_scores_as_model_eval(tmp_path):
     from inference.metrics import psnr
     from inference.runtime.preprocess import Resampler
-    from rig.cameras.sim import sim_rig_config
+    from rig.sim.rig_config import sim_rig_config
     from rig.config import parse_config
     from rig.live.app import LiveApp
     from rig.storage.dataset import Sequence

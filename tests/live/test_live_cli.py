@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from rig.cameras.sim import sim_rig_config
+from rig.sim.rig_config import sim_rig_config
 from rig.config import dump_config
 from tests.rig.cli_helpers import REPO, assert_one_line_error, run_rig
 

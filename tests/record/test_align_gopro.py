@@ -13,7 +13,8 @@ import socket
 
 import numpy as np
 
-from rig.cameras.sim import SIM_EPOCH_NS, sim_rig_config
+from rig.sim.clock import SIM_EPOCH_NS
+from rig.sim.rig_config import sim_rig_config
 from rig.capture.record import record
 from rig.config import dump_config, load_config, parse_config
 from rig.storage.align import align

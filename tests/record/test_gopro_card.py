@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from rig.cameras.gopro import card_client
-from rig.cameras.sim import SIM_EPOCH_NS, sim_rig_config
+from rig.sim.clock import SIM_EPOCH_NS
+from rig.sim.rig_config import sim_rig_config
 from rig.cli import main
 from rig.config import dump_config, load_config, parse_config
 from rig.storage.layout import INDEX

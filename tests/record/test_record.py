@@ -11,7 +11,7 @@ import tomllib
 
 import numpy as np
 
-from rig.cameras.sim import sim_rig_config
+from rig.sim.rig_config import sim_rig_config
 from rig.config import dump_config, load_config, parse_config
 from rig.storage.layout import INDEX
 from rig.storage.netpbm import netpbm_size

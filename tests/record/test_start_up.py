@@ -11,7 +11,7 @@ import threading
 
 from rig.progress import MIN_RATE_S, rate, rate_text
 from rig.config import dump_config, parse_config
-from rig.cameras.sim import sim_rig_config
+from rig.sim.rig_config import sim_rig_config
 from tests.record.test_record import rig_file
 from tests.rig.cli_helpers import REPO, run_rig
 

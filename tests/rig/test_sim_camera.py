@@ -11,7 +11,7 @@ import pytest
 
 from common.bayer import demosaic, mosaic
 from rig.cameras import open_camera
-from rig.cameras.sim import sim_rig_config
+from rig.sim.rig_config import sim_rig_config
 from rig.config import CameraConfig, parse_config
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError
 

@@ -7,7 +7,7 @@ import pytest
 
 from calibration.boards import CharucoSpec
 from calibration.report import coverage
-from rig.cameras.sim import sim_rig_config
+from rig.sim.rig_config import sim_rig_config
 from rig.config import parse_config
 from simulator import loop_cache
 from simulator.calibration_session import CalibrationSession, seen_fraction
