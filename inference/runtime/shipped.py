@@ -1,4 +1,6 @@
-"""Where the trained model that ships with the product lives (models/ at the top of the source tree).
+"""Where the trained model that ships with the product lives: the package data `inference/runtime/models`,
+which in the source tree is a link to models/ at its top and in an installed wheel a copy of it
+(pyproject.toml's package-data), so an installation that is not editable serves it too.
 
 `models/splat-sap-preview.pt` is the checkpoint `rig train` wrote, `models/splat-sap-preview.onnx`
 its export; `models/MODEL_CARD.md` says how it was trained and what it scores. The runtime, `rig
@@ -8,11 +10,14 @@ a CPU by default (docs/live.md). Standard library only (the live path).
 """
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 from inference.errors import InferenceError
 
-MODELS = Path(__file__).resolve().parents[2] / "models"
+# a folder on disk (ONNX Runtime opens a model, and the external weights beside it, by path); in the
+# source tree the link resolves to models/ itself
+MODELS = Path(str(resources.files("inference.runtime").joinpath("models"))).resolve()
 NAME = "splat-sap-preview"
 LIVE_NAME = "splat-sap-live"  # `rig model export --checkpoint models/splat-sap-preview.pt --size test -o models/splat-sap-live.onnx`
 
