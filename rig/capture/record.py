@@ -20,10 +20,15 @@ from rig.progress import StatusLine, rate, rate_text
 from rig.truth import take_truth
 from rig.capture.cards import CardShutters
 from rig.capture.session import TAKE_NEEDS_LIVE
+from rig.storage.disk import check_disk, rig_data_rate
 from rig.storage.layout import FLASHES
 from rig.storage.recorder import SequenceWriter
 
 RECORD_MAX_WAIT_S = 2.0  # how long a set waits for a late frame before it is written without it
+# A set reaching the writer this long after its frames arrived means the disk (or, compressing, the
+# CPU) cannot keep up: the sets in between wait in memory. Beyond this, sets are skipped, counted and
+# reported, until the writer has caught up, rather than filling the host's memory until it fails.
+BEHIND_LIMIT_S = RECORD_MAX_WAIT_S + 2.0
 # Cameras that cannot be triggered are aligned to the pulses afterwards by the board's LED flashing
 # in their view (`rig record align`): once soon after the take starts and once near its end, so the
 # alignment also measures each camera's clock rate. A flash lasts a few frame periods: the fit uses
@@ -74,6 +79,14 @@ class RecordResult:
     stopped_by: str = "done"
     flashes: int = 0
     media: Optional[dict] = None  # card cameras: what rig.capture.fetch reported
+    codec: str = "raw"
+    raw_bytes: int = 0  # what the written frames hold uncompressed
+    encode_cpu_s: float = 0.0
+    sets_skipped: int = 0  # sets not written because the writer had fallen too far behind
+    frames_skipped: int = 0
+    behind_max_s: float = 0.0  # the most a set waited between its frames' arrival and the writer
+    data_mb_per_s: Optional[float] = None  # the rig's raw data rate (config), checked against the disk
+    disk_mb_per_s: Optional[float] = None  # the disk's rate, measured before the take
 
     @property
     def frames_lost(self) -> dict[str, int]:
@@ -95,16 +108,29 @@ class RecordResult:
             "stopped_by": self.stopped_by,
             "flashes": self.flashes,
             "media": self.media,
+            "codec": self.codec,
+            "compression_ratio": round(self.raw_bytes / self.bytes, 3) if self.bytes else None,
+            "encode_ms_per_frame": (round(1e3 * self.encode_cpu_s / sum(self.frames.values()), 2)
+                                    if self.codec != "raw" and sum(self.frames.values()) else None),
+            "sets_skipped": self.sets_skipped,
+            "frames_skipped": self.frames_skipped,
+            "behind_max_s": round(self.behind_max_s, 3),
+            "data_mb_per_s": self.data_mb_per_s,
+            "disk_mb_per_s": self.disk_mb_per_s,
             "errors": self.errors,
         }
 
 
 def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Optional[int] = None,
            status: Optional[StatusLine] = None, notes: Optional[Callable[[str], None]] = None,
-           flash: Optional[bool] = None) -> RecordResult:
+           flash: Optional[bool] = None, codec: str = "raw", disk_check: bool = True,
+           compress_ratio: Optional[float] = None) -> RecordResult:
     """Record to the new folder `out`; `status` shows the take as it goes, `notes` hears the start-up
     phases (rig/progress.py). `flash`: flash the board's LED for `rig record align` (default: when
-    the rig has free-running cameras and a trigger board)."""
+    the rig has free-running cameras and a trigger board). `codec`: raw or png (lossless).
+    `disk_check`: before anything starts, measure the output disk and refuse (DiskTooSlow, exit 2)
+    a rig whose data rate it cannot take; `compress_ratio`: with png, the compression ratio to count
+    (an earlier take's `compression_ratio`); unknown, compression counts for nothing."""
     from rig.capture.session import RigSession
 
     if seconds is None and sets is None:
@@ -119,9 +145,16 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     live = live_cameras(cfg.cameras, TAKE_NEEDS_LIVE)  # the cameras of the sets
     cards = [c.name for c in cfg.cameras if c not in live]
     rate = cfg.trigger.rate_hz if cfg.trigger else max(c.fps for c in live)
+    if compress_ratio is not None and not compress_ratio >= 1.0:
+        raise ConfigError(f"record: --compress-ratio must be at least 1, got {compress_ratio:g}")
+    data_rate, disk = rig_data_rate(cfg, live), None
+    if disk_check:
+        # half a second, said nowhere: a refusal must stay the one line on stderr; before the cameras open: a take the disk cannot hold is refused up front, not cut short
+        _, disk = check_disk(cfg, out, ratio=(compress_ratio or 1.0) if codec != "raw" else 1.0, cameras=live)
     writer = SequenceWriter(out, live, rig_name=cfg.name, rate_hz=rate, config_file=cfg.path,
-                            calibration_file=calibration, extra=take_truth(cfg))
-    result = RecordResult(Path(out))
+                            calibration_file=calibration, extra=take_truth(cfg), codec=codec)
+    result = RecordResult(Path(out), codec=codec, data_mb_per_s=round(data_rate / 1e6, 1),
+                          disk_mb_per_s=round(disk.bytes_per_s / 1e6, 1) if disk is not None else None)
     cpu0 = time.process_time()
     t0 = time.monotonic()
     t_first: Optional[float] = None
@@ -156,6 +189,8 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                     waiting_for = {c.name for c in live if c.trigger == "free"}
                     flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
                 for fs in session.framesets(until=lambda: seconds is not None and t_first is not None and time.monotonic() - t_first >= seconds):
+                    if _behind(fs, result, notes):
+                        continue
                     if not writer.write(fs):
                         result.stopped_by = "storage"
                         session.stop()
@@ -192,7 +227,8 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
             # Leaving the `with` block stopped the session, which grouped the frames still in flight
             # into its last sets: write them too, so an interrupted take loses no delivered frame.
             while writer.error is None and (fs := session.next_set(timeout=0)) is not None:
-                writer.write(fs)
+                if not _behind(fs, result, notes):
+                    writer.write(fs)
             session_stats = session.camera_stats()
     finally:
         writer.close()  # (leaving the session released any shutter still pressed)
@@ -210,12 +246,33 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     result.complete_sets = writer.complete_sets
     result.frames = dict(writer.frames_written)
     result.bytes = writer.bytes_written
+    result.raw_bytes = writer.raw_bytes
+    result.encode_cpu_s = writer.encode_cpu_s
+    if result.sets_skipped:
+        result.errors.append(f"the recording fell {result.behind_max_s:.1f} s behind the cameras (the disk or, compressing, the "
+                             f"CPU is too slow): {result.sets_skipped} sets ({result.frames_skipped} frames) were skipped, "
+                             f"not written; the index shows them as gaps")
     result.delivered = {n: s.get("delivered", 0) for n, s in session_stats.items()}
     result.drops = {n: s.get("dropped", 0) for n, s in session_stats.items()}
     if writer.error is not None:
         result.errors.append(str(writer.error))
         result.stopped_by = "storage"
     return result
+
+
+def _behind(fs, result: RecordResult, notes: Optional[Callable[[str], None]]) -> bool:
+    """Whether to skip this set: the writer is more than BEHIND_LIMIT_S behind the cameras (the
+    time since the set's last frame arrived). Counted; said once when it starts."""
+    arrived = max([f.host_ts_ns for f in fs.frames.values() if f is not None] or [fs.host_ts_ns])
+    behind = (time.monotonic_ns() - arrived) / 1e9
+    result.behind_max_s = max(result.behind_max_s, behind)
+    if behind <= BEHIND_LIMIT_S:
+        return False
+    if result.sets_skipped == 0 and notes is not None:
+        notes(f"the recording is {behind:.1f} s behind the cameras: skipping sets until it catches up (they are counted)")
+    result.sets_skipped += 1
+    result.frames_skipped += sum(f is not None for f in fs.frames.values())
+    return True
 
 
 def _fetch_media(out: Path, notes: Optional[Callable[[str], None]], errors: list[str]) -> dict:

@@ -26,6 +26,15 @@ def register(sub) -> None:
                                                                       "not hardware-triggered / every card camera)")
     p.add_argument("--no-flash", action="store_true", help="record: do not flash the board's LED (by default a take with free-running "
                                                            "cameras and a trigger board gets two flashes, for `rig record align`)")
+    p.add_argument("--compress", choices=("png",), default=None,
+                   help="record: store frames as lossless PNG (about 1.6 to 3 times smaller, depending on the image's "
+                        "noise; costs CPU, see docs/sequence-format.md) instead of raw netpbm")
+    p.add_argument("--compress-ratio", type=float, metavar="R",
+                   help="record with --compress: the compression ratio the disk check counts (an earlier take's "
+                        "compression_ratio); without it compression counts for nothing in the check")
+    p.add_argument("--no-disk-check", action="store_true",
+                   help="record: skip measuring the output disk (a short test file) and refusing a rig whose data rate "
+                        "it cannot take")
     p.add_argument("--json", action="store_true", help="print one JSON object (stderr: errors only)")
     p.set_defaults(func=cmd_record)
 
@@ -210,12 +219,15 @@ def _record(args) -> int:
         raise ConfigError("record: give --seconds S or --sets N")
     if (args.seconds is not None and not args.seconds > 0) or (args.sets is not None and args.sets <= 0):
         raise ConfigError("record: --seconds and --sets must be positive")
+    if args.compress_ratio is not None and args.compress is None:
+        raise ConfigError("record: --compress-ratio counts only with --compress png")
     cfg = load_config(args.config)
     new_output_folder(args.out)  # a take is never written over or into another folder's files
     status = StatusLine(sys.stderr)
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
     result = record(cfg, args.out, seconds=args.seconds, sets=args.sets, status=status, notes=Notes(quiet=args.json),
-                    flash=False if args.no_flash else None)
+                    flash=False if args.no_flash else None, codec=args.compress or "raw",
+                    disk_check=not args.no_disk_check, compress_ratio=args.compress_ratio)
     status.done()
     d = result.to_dict()
     if args.json:
@@ -225,6 +237,8 @@ def _record(args) -> int:
         rates = f"{d['sets_per_s']:.1f} sets/s, {d['mb_per_s']:.1f} MB/s, " if rate(d["sets"], d["seconds"]) is not None else ""
         print(f"recorded {d['sets']} sets ({d['complete_sets']} complete) in {d['seconds']:.1f} s to {result.out}: "
               f"{rates}frames lost {sum(result.frames_lost.values())}")
+        if d["compression_ratio"] and d["codec"] != "raw":
+            print(f"  {d['codec']}: {d['compression_ratio']:.2f} times smaller than raw, {d['encode_ms_per_frame']} ms of CPU per frame")
         for n in result.frames:
             print(f"  {n}: {result.frames[n]} frames, {result.drops.get(n, 0)} dropped by the camera link")
         for n, c in ((result.media or {}).get("cameras") or {}).items():

@@ -35,9 +35,8 @@ from common.files import atomic_write_bytes, atomic_write_json
 from rig.storage.index import scan_index
 from rig.storage.align_video import align_videos
 from rig.storage.flash_fit import check_flash_shape, fit_clock, read_flashes
-from rig.storage.layout import CONFIG_COPY, INDEX, SequenceError, SequenceMeta
+from rig.storage.layout import CONFIG_COPY, INDEX, SequenceError, SequenceMeta, read_image_file
 from rig.storage.media import MANIFEST, MediaManifest
-from rig.storage.netpbm import read_netpbm
 from rig.storage.repair import keep_index_copy
 from sync.alignment import brightness_trace, find_flash
 from sync.errors import SyncError
@@ -160,7 +159,7 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
         try:
             if len(near) < 3:
                 raise SyncError(f"only {len(near)} frames near it")
-            images = [read_netpbm(root / file) for _, file in near]
+            images = [read_image_file(root / file) for _, file in near]  # raw or PNG
             trace = brightness_trace(images)
             est = find_flash([t for t, _ in near], trace, exposure_ns, duration_ns=f["ms"] * 1e6)
             check_flash_shape(trace, [t for t, _ in near], est, f["ms"])

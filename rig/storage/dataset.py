@@ -24,8 +24,7 @@ import numpy as np
 from calibration.camera import CameraModel, RigCalibration
 from rig.cameras.pixels import rgb8
 from rig.storage.index import scan_index
-from rig.storage.layout import CALIBRATION_COPY, SequenceError, SequenceMeta
-from rig.storage.netpbm import NetpbmError, read_netpbm
+from rig.storage.layout import CALIBRATION_COPY, ImageError, SequenceError, SequenceMeta
 from rig.truth import renderer, truth_cameras
 
 
@@ -116,13 +115,14 @@ class Sequence:
         for n in names:
             rec = recs[n]
             path = self.root / rec["file"]
+            entry = self.meta.camera(n)
             try:
-                stored = read_netpbm(path)
+                stored = entry.read(path)  # raw netpbm or PNG, as the take recorded this camera
             except FileNotFoundError:
                 raise SequenceError(f"{path}: missing; `rig record validate {self.root}` lists every damaged frame") from None
-            except NetpbmError as exc:
+            except ImageError as exc:
                 raise SequenceError(f"{exc}; `rig record validate {self.root}` lists every damaged frame") from None
-            img = rgb8(self.meta.camera(n).decoded(stored))
+            img = rgb8(entry.decoded(stored))
             if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
                 img = _resize(img, size)
             images[n] = img

@@ -7,6 +7,7 @@ Layout (documented for users in docs/sequence-format.md):
     SEQ/calibration.json     copy of the rig calibration (when the rig has one)
     SEQ/index.jsonl          one row per FrameSet, appended and flushed as sets land (rig/storage/index.py)
     SEQ/frames/CAM/NNNNNNNN.ppm|pgm   one binary netpbm image per frame (rig/storage/netpbm.py)
+    SEQ/frames/CAM/NNNNNNNN.png       or, for a camera recorded with --compress png, one lossless PNG (rig/storage/png.py)
 """
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ import numpy as np
 
 from common.bayer import demosaic, mosaic
 from rig.errors import RigError
-from rig.storage.netpbm import netpbm_size, netpbm_suffix
+from rig.storage.netpbm import NetpbmError, netpbm_header, netpbm_size, netpbm_suffix, read_netpbm
+from rig.storage.png import PngError, png_damage, read_png
 
 FORMAT_VERSION = 1
 INDEX = "index.jsonl"
@@ -27,7 +29,12 @@ META = "sequence.json"
 FRAMES = "frames"
 CONFIG_COPY = "rig.toml"
 CALIBRATION_COPY = "calibration.json"
+CODECS = ("raw", "png")  # how a camera's frames are stored: uncompressed netpbm, or lossless PNG
 FLASHES = "flashes.jsonl"  # the trigger board's LED flashes during the take (rig record align reads them)
+
+
+class ImageError(ValueError):
+    """A frame file is not a whole image of the kind the recorder writes (netpbm or PNG)."""
 
 
 class SequenceError(RigError):
@@ -59,15 +66,43 @@ class CameraEntry:
     pixel_format: str  # what the sensor delivered
     channels: int  # as stored: 3 (RGB) or 1
     bytes_per_sample: int
+    codec: str = "raw"  # raw (netpbm) or png; sequence.json names it only for png (a raw take reads as before)
 
     @property
-    def frame_bytes(self) -> int:
-        """Size of each of this camera's image files."""
+    def frame_bytes(self) -> Optional[int]:
+        """Size of each of this camera's image files (None for PNG: it varies with the content)."""
+        if self.codec == "png":
+            return None
         return netpbm_size(self.width, self.height, self.channels, self.bytes_per_sample)
 
     @property
+    def raw_bytes(self) -> int:
+        """Bytes of one frame's samples as stored uncompressed."""
+        return self.width * self.height * self.channels * self.bytes_per_sample
+
+    @property
     def suffix(self) -> str:
-        return netpbm_suffix(self.channels)
+        return ".png" if self.codec == "png" else netpbm_suffix(self.channels)
+
+    def damage(self, path: Path) -> Optional[str]:
+        """Why the image file at `path` is not a whole frame of this camera, or None; from its size and
+        first and last bytes, without decoding it. Raises FileNotFoundError / OSError as `open` does."""
+        if self.codec == "png":
+            return png_damage(path, self.width, self.height, self.channels, self.bytes_per_sample)
+        size = path.stat().st_size
+        if size != self.frame_bytes:
+            return f"torn image ({size} of {self.frame_bytes} bytes)"
+        header = netpbm_header(self.width, self.height, self.channels, self.bytes_per_sample)
+        with open(path, "rb") as f:
+            if f.read(len(header)) != header:
+                return "damaged image header"
+        return None
+
+    def read(self, path: Path) -> np.ndarray:
+        """The stored image (before `decoded`) of a frame file; ImageError when it is damaged."""
+        if path.suffix != self.suffix:
+            raise ImageError(f"{path}: not a {self.suffix} image (the camera is recorded as {self.codec})")
+        return read_image_file(path)
 
     @property
     def bayer(self) -> bool:
@@ -86,6 +121,14 @@ class CameraEntry:
         return stored
 
 
+def read_image_file(path: Path) -> np.ndarray:
+    """The stored image of a frame file, netpbm or PNG by its name (ImageError when damaged)."""
+    try:
+        return read_png(path) if path.suffix == ".png" else read_netpbm(path)
+    except (NetpbmError, PngError) as exc:
+        raise ImageError(str(exc)) from None
+
+
 @dataclass
 class SequenceMeta:
     """The content of `sequence.json`."""
@@ -98,7 +141,7 @@ class SequenceMeta:
 
     def to_dict(self) -> dict[str, Any]:
         d = {"version": FORMAT_VERSION, "rig": self.rig, "rate_hz": self.rate_hz, "created": self.created,
-             "cameras": [c.__dict__ for c in self.cameras]}
+             "cameras": [{k: v for k, v in c.__dict__.items() if k != "codec" or v != "raw"} for c in self.cameras]}
         d.update(self.extra)
         return d
 
@@ -119,6 +162,9 @@ class SequenceMeta:
             cams = [CameraEntry(**c) for c in d["cameras"]]
         except (KeyError, TypeError) as exc:
             raise SequenceError(f"{path}: malformed camera list ({exc})") from None
+        for c in cams:
+            if c.codec not in CODECS:
+                raise SequenceError(f"{path}: camera '{c.name}' stored as {c.codec!r}, which this version cannot read (knows {', '.join(CODECS)})")
         extra = {k: v for k, v in d.items() if k not in ("version", "rig", "rate_hz", "created", "cameras")}
         return cls(cams, d.get("rig", ""), d.get("rate_hz"), d.get("created", ""), extra)
 

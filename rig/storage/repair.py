@@ -3,7 +3,7 @@
 Only the index is rewritten; no image is touched. Line by line:
 - a line that is not a whole index row (garbage, a torn last row) is dropped: it names no frame
   that could be read back anyway;
-- a frame whose image is missing, torn (wrong size), has a damaged header, or whose record is
+- a frame whose image is missing, torn (wrong size; a PNG without its end chunk), has a damaged header, or whose record is
   malformed, is marked missing (`null`) in its set, as the recorder marks a dropped frame; the set
   and its other cameras' frames are kept;
 - a camera the sequence does not record (not in sequence.json) is removed from its row, and a
@@ -22,7 +22,6 @@ from typing import Any, Optional
 
 from common.files import atomic_write_bytes
 from rig.storage.layout import INDEX, CameraEntry, SequenceError, SequenceMeta
-from rig.storage.netpbm import netpbm_header
 
 BACKUP_PREFIX = "index.before-repair-"
 
@@ -141,13 +140,9 @@ def frame_damage(root: Path, entry: CameraEntry, rec: Any) -> Optional[str]:
         return f"{rec['file']} is outside the sequence folder"
     path = root / rel
     try:
-        size = path.stat().st_size
-        if size != entry.frame_bytes:
-            return f"torn image ({size} of {entry.frame_bytes} bytes)"
-        header = netpbm_header(entry.width, entry.height, entry.channels, entry.bytes_per_sample)
-        with open(path, "rb") as f:
-            if f.read(len(header)) != header:
-                return "damaged image header"
+        if path.suffix != entry.suffix:
+            return f"not a {entry.suffix} image (the camera is recorded as {entry.codec})"
+        return entry.damage(path)
     except FileNotFoundError:
         return "image file missing"
     except OSError as exc:

@@ -11,9 +11,8 @@ from typing import Any, Optional
 import numpy as np
 
 from rig.storage.index import scan_index
-from rig.storage.layout import CALIBRATION_COPY, INDEX, CameraEntry, SequenceMeta
+from rig.storage.layout import CALIBRATION_COPY, INDEX, CameraEntry, ImageError, SequenceMeta
 from rig.storage.media import media_problems
-from rig.storage.netpbm import NetpbmError, read_netpbm
 from rig.storage.repair import frame_damage
 
 
@@ -98,8 +97,8 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
             problem = frame_problem(root, entries, row, cam, rec)
             if problem is None and rec is not None and check_pixels:
                 try:
-                    read_netpbm(root / rec["file"])
-                except NetpbmError as exc:
+                    entries[cam].read(root / rec["file"])
+                except ImageError as exc:
                     problem = str(exc)
             if problem is not None:
                 v.errors.append(problem)
