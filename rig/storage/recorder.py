@@ -1,7 +1,7 @@
 """Write FrameSets to a sequence folder (docs/sequence-format.md), fast enough for a small embedded box.
 
 One writer thread per camera writes raw netpbm images (no compression: the disk, not the CPU, is the
-limit), each image in one system call from the frame's own buffer (no copy). With `codec="png"`
+limit), each image in one system call from the frame's own buffer (no copy; O_DIRECT on request). With `codec="png"`
 several threads per camera compress frames to lossless PNG (the CPU is then the limit; the
 compression releases the GIL, so the threads run on every core). A set's index row is appended, in
 set order, once all of its images are written, and flushed at once (a `kill -9` loses nothing that
@@ -38,7 +38,7 @@ class SequenceWriter:
     def __init__(self, root: Path, cameras: list, rig_name: str = "", rate_hz: Optional[float] = None,
                  config_file: Optional[Path] = None, calibration_file: Optional[Path] = None,
                  extra: Optional[dict] = None, sync_interval: float = 0.5, codec: str = "raw",
-                 encoders: Optional[int] = None, direct: bool = True):
+                 encoders: Optional[int] = None, direct: bool = False):
         """`cameras`: CameraConfig-like objects (name, role, width, height, pixel_format). `codec`:
         raw (netpbm) or png (lossless); `encoders`: PNG threads per camera (default: the CPU count
         shared among the cameras, at least one each)."""
@@ -70,8 +70,9 @@ class SequenceWriter:
         except OSError as exc:
             raise StorageError(f"{self.root}: cannot create the sequence ({exc.strerror})") from None
         self.entries = {e.name: e for e in entries}
-        # raw frames go to the disk with O_DIRECT where the take's filesystem takes it: no copy into
-        # the page cache (half a core at 1.3 GB/s) and no pile of dirty pages for the kernel to flush
+        # direct=True writes raw frames with O_DIRECT (no copy into the page cache); off by default:
+        # on the benchmark's (virtual, shared) disk it measured no faster than buffered writes, and
+        # slower in the last comparison (docs/sequence-format.md, "Recording speed")
         self.direct = codec == "raw" and direct and _direct_works(self.root)
         self.sync_interval = sync_interval
         self._lock = threading.Lock()
