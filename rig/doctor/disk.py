@@ -3,17 +3,16 @@ rate (every camera's frame bytes x frames per second)."""
 from __future__ import annotations
 
 import os
-import tempfile
-import time
 from pathlib import Path
 
 from rig.doctor.check import FAIL, OK, WARN, Check, mib, rate
 from rig.doctor.host import Host
 from rig.doctor.needs import RigNeeds
 from rig.doctor.space import existing, space
+from rig.storage.disk import measure_write_rate
 
 AREA = "disk"
-BLOCK = 4 << 20
+BLOCK = 4 << 20  # the smallest test: a few of the recorder's writes
 TEST_BYTES = 256 << 20   # the write test stops after this much...
 TEST_SECONDS = 3.0       # ...or this long, whichever comes first, and never takes over a tenth of the free room
 # A take writes more than its frames (the index, per-set syncs for crash safety): a disk within this
@@ -22,22 +21,12 @@ HEADROOM = 0.8
 
 
 def write_rate(folder: Path, max_bytes: int = TEST_BYTES, max_seconds: float = TEST_SECONDS) -> tuple[int, float]:
-    """(bytes, seconds) of a sequential write of random data (a compressing filesystem cannot shrink
-    it) to a file in `folder`, flushed to the disk and removed after."""
-    block = os.urandom(BLOCK)
-    fd, tmp = tempfile.mkstemp(prefix=".rig-doctor-", suffix=".tmp", dir=folder)
-    written = 0
-    try:
-        start = time.perf_counter()
-        while written < max_bytes and (time.perf_counter() - start) < max_seconds:
-            n = min(BLOCK, max_bytes - written)
-            written += os.write(fd, block[:n])
-        os.fsync(fd)
-        seconds = time.perf_counter() - start
-    finally:
-        os.close(fd)
-        os.unlink(tmp)
-    return written, seconds
+    """(bytes, seconds) of a sequential write of random data to a file in `folder`, on the disk
+    (O_DIRECT, else fsync'd) and removed after: the same measurement `rig record` makes before a take."""
+    measured = measure_write_rate(folder, seconds=max_seconds, max_bytes=max_bytes)
+    if measured is None:  # under a megabyte free: nothing to measure, and nothing to record either
+        return 0, 0.0
+    return measured.bytes, measured.seconds
 
 
 def rate_status(measured_bps: float, need_bps: float) -> str:
@@ -77,11 +66,11 @@ def checks(host: Host, needs: RigNeeds, output: Path, minutes: float, test_bytes
         return out
     size = test_bytes if sp is None else max(BLOCK, min(test_bytes, sp.avail // 10))
     written, seconds = write_rate(folder, size)
-    measured = written / seconds if seconds > 0 else float("inf")
+    measured = written / seconds if seconds > 0 else 0.0
     st = rate_status(measured, need_rate)
     note = {FAIL: "the disk cannot keep up: fewer cameras, smaller frames, a lower rate, or a faster disk",
             WARN: f"the rig needs more than {HEADROOM:.0%} of the disk's sequential rate: little room for the index, syncs and other writes",
             OK: ""}[st]
-    out.append(Check(AREA, f"write rate {where}", st, f"{rate(measured)} ({mib(written)} in {seconds:.2f} s, fsync'd)",
+    out.append(Check(AREA, f"write rate {where}", st, f"{rate(measured)} ({mib(written)} in {seconds:.2f} s, to the disk)",
                      f">= {rate(need_rate)} ({len(needs.cameras)} camera{'s' if len(needs.cameras) != 1 else ''})", None, note))
     return out

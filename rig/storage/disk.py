@@ -69,12 +69,12 @@ def nearest_existing_folder(path: Path) -> Path:
 
 def measure_write_rate(folder: str | os.PathLike, seconds: float = 0.5, max_bytes: int = 256 << 20) -> Optional[DiskRate]:
     """The disk's sequential write rate in `folder` (or its nearest existing parent), or None when
-    the free space is too small to measure anything (under 4 MB). Raises StorageError when the
+    the free space is too small to measure anything (under 4 MB free, a megabyte of test). Raises StorageError when the
     folder cannot be written at all."""
     folder = nearest_existing_folder(Path(folder))
     free = shutil.disk_usage(folder).free
     budget = min(max_bytes, free // 4) // mmap.PAGESIZE * mmap.PAGESIZE
-    if budget < (4 << 20):
+    if budget < (1 << 20):
         return None
     chunk = min(CHUNK, budget)
     buf = mmap.mmap(-1, chunk)  # page-aligned, as O_DIRECT needs
@@ -125,7 +125,9 @@ def check_disk(cfg, folder: str | os.PathLike, ratio: float = 1.0, cameras=None)
     """(the rig's stored data rate in bytes/s, the disk's measured rate); raises DiskTooSlow when the
     disk is slower. `ratio`: how many times smaller compression stores the frames (1 for raw)."""
     need = rig_data_rate(cfg, cameras) / ratio
-    disk = measure_write_rate(folder)
+    # four seconds of the rig's data (16 MB at least, 256 MB at most): a small rig's take starts at
+    # once, a fast one is measured over enough bytes to pass any cache
+    disk = measure_write_rate(folder, max_bytes=int(min(256 << 20, max(16 << 20, 4 * need))))
     if disk is not None and need > disk.bytes_per_s:
         how = "" if ratio == 1.0 else f" at a compression ratio of {ratio:g}"
         raise DiskTooSlow(
