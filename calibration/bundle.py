@@ -86,6 +86,11 @@ class Solution:
     # the covariance could not be computed for (`std_unknown_reason` says why). Never a stand-in 0.
     intrinsics_std: np.ndarray
     std_unknown_reason: str | None = None
+    # (C, 9, 9) what the corners say about each camera's intrinsics with every other unknown (board
+    # poses, camera poses, other cameras' intrinsics) marginalised: the inverse of its covariance
+    # block, in 1 / (unit of the slot)^2. Zero rows and columns for held slots. None when the noise
+    # could not be estimated. A single-camera fit's is that lens's prior in a joint solve.
+    intrinsics_information: np.ndarray | None = None
 
     def rms(self, mask: np.ndarray | None = None) -> float:
         r = self.residuals if mask is None else self.residuals[mask]
@@ -216,6 +221,7 @@ def solve(
     square_pixels: np.ndarray | None = None,
     prior_std: np.ndarray | None = None,
     prior_mean: np.ndarray | None = None,
+    prior_information: np.ndarray | None = None,
 ) -> Solution:
     """Minimise the squared reprojection error over all free parameters.
 
@@ -227,6 +233,9 @@ def solve(
     intrinsic slots priors: a free slot with a finite value may move from `prior_mean` (default: its
     start value) at a cost of ((value - mean) / prior_std)^2, in the units of the weighted squared
     errors (a weight of 1 is a corner whose noise is 1 px). A fixed slot's prior is moot.
+    `prior_information` (C, 9, 9), in the same units, is the general form: camera c's intrinsics x
+    cost (x - mean)^T A_c (x - mean), so correlated terms (fx with fy, k1 with k2) move together as
+    the fit that measured them allows; it adds to `prior_std`'s terms.
     """
     C, V = problem.n_cameras, problem.n_views
     fisheye = np.zeros(C, dtype=bool) if problem.fisheye is None else np.asarray(problem.fisheye, dtype=bool)
@@ -255,16 +264,23 @@ def solve(
     for dst, src in ties:  # its Jacobian columns add into the fx unknown's
         reduced[dst] = reduced[src]
     Pr = int(free.sum())
-    # Priors: (reduced column, start value, 1 / sigma) of each free slot that has one.
-    prior_cols = np.zeros(0, dtype=int)
-    prior_centre = prior_scale = np.zeros(0)
-    prior_slots = np.zeros(0, dtype=int)
+    # Priors: per camera an information matrix over its intrinsic slots; those a free (or tied)
+    # unknown carries enter the cost, scattered onto their reduced columns.
+    info = np.zeros((C, N_INTR, N_INTR))
     if prior_std is not None:
-        ps = np.asarray(prior_std, dtype=np.float64).reshape(-1)
-        prior_slots = np.flatnonzero(np.isfinite(ps) & (ps > 0) & free[: C * N_INTR])
-        prior_cols = reduced[prior_slots]
-        prior_centre = np.asarray(intr0 if prior_mean is None else prior_mean, dtype=np.float64).reshape(-1)[prior_slots]
-        prior_scale = 1.0 / ps[prior_slots]
+        ps = np.asarray(prior_std, dtype=np.float64).reshape(C, N_INTR)
+        ok = np.isfinite(ps) & (ps > 0)
+        info[:, np.arange(N_INTR), np.arange(N_INTR)] += np.where(ok, 1.0 / np.where(ok, ps, 1.0) ** 2, 0.0)
+    if prior_information is not None:
+        info += np.nan_to_num(np.asarray(prior_information, dtype=np.float64).reshape(C, N_INTR, N_INTR))
+    prior_centre_all = np.asarray(intr0 if prior_mean is None else prior_mean, dtype=np.float64).reshape(-1)
+    blocks = []  # (slots in the flat intrinsics, their reduced columns, information among them)
+    for c in range(C):
+        slots = c * N_INTR + np.arange(N_INTR)
+        has = (reduced[slots] >= 0) & (np.abs(info[c]).sum(axis=1) > 0)
+        if has.any():
+            blocks.append((slots[has], reduced[slots[has]], info[c][np.ix_(has, has)]))
+    prior_slots = np.concatenate([b[0] for b in blocks]) if blocks else np.zeros(0, dtype=int)
 
     # Work on corners grouped by camera view, so the normal equations can be summed per view first.
     key = problem.cam_idx.astype(np.int64) * V + problem.view_idx
@@ -280,12 +296,13 @@ def solve(
     def weighted_residuals(s: State) -> np.ndarray:
         return residuals(prob, s) * sw
 
-    def prior_residuals(s: State) -> np.ndarray:
-        return (s.intr.reshape(-1)[prior_slots] - prior_centre) * prior_scale
+    def prior_terms(s: State):
+        """Each block's offset from its mean and the block's share of the gradient (A d)."""
+        flat = s.intr.reshape(-1)
+        return [(flat[sl] - prior_centre_all[sl], A) for sl, _, A in blocks]
 
     def total_cost(r: np.ndarray, s: State) -> float:
-        e = prior_residuals(s)
-        return float(np.sum(r * r) + np.sum(e * e))
+        return float(np.sum(r * r) + sum(d @ A @ d for d, A in prior_terms(s)))
 
     def normal_equations(s: State, r: np.ndarray):
         J = jacobian(prob, s) * sw[:, :, None]
@@ -300,9 +317,9 @@ def solve(
         flat = (gidx[:, :, None] * n + gidx[:, None, :]).ravel()
         H = np.bincount(flat, weights=A.ravel(), minlength=n * n).reshape(n, n)[:Pr, :Pr]
         grad = np.bincount(gidx.ravel(), weights=g.ravel(), minlength=n)[:Pr]
-        if len(prior_slots):  # each prior is a residual linear in its slot
-            np.add.at(H, (prior_cols, prior_cols), prior_scale ** 2)
-            np.add.at(grad, prior_cols, prior_scale * prior_residuals(s))
+        for (_, cols, A), (d, _) in zip(blocks, prior_terms(s)):  # each prior is quadratic in its slots
+            np.add.at(H, (cols[:, None], cols[None, :]), A)
+            np.add.at(grad, cols, A @ d)
         return H, grad
 
     def step(s: State, dx: np.ndarray) -> State:
@@ -348,7 +365,9 @@ def solve(
 
     H, _ = normal_equations(state, r)  # at the solution, not at the last iterate before it
     front = C * N_INTR + C * 6  # intrinsics and camera poses; the board poses after them are marginalised
-    std_front, why = parameter_std(H, cost, 2 * len(r) + len(prior_slots), n_front=int(free[:front].sum()))
+    n_res = 2 * len(r) + len(prior_slots)
+    std_front, why = parameter_std(H, cost, n_res, n_front=int(free[:front].sum()))
+    information = _intrinsics_information(H, cost, n_res, free, reduced, C, front)
     std = np.full(front, np.nan)
     std[free[:front]] = std_front
     for dst, src in ties:
@@ -356,5 +375,30 @@ def solve(
     unweighted = np.empty_like(r)
     unweighted[order] = r / sw
     intr, cams, views = state.vectors()
-    return Solution(intr, cams, views, unweighted, it, converged, std[: C * N_INTR].reshape(C, N_INTR), why)
+    return Solution(intr, cams, views, unweighted, it, converged, std[: C * N_INTR].reshape(C, N_INTR), why, information)
+
+
+def _intrinsics_information(H: np.ndarray, cost: float, n_residuals: int, free: np.ndarray, reduced: np.ndarray, C: int,
+                            front: int) -> np.ndarray | None:
+    """(C, 9, 9): each camera's intrinsics' information, everything else marginalised (see Solution)."""
+    from calibration.uncertainty import front_information
+
+    nf = int(free[:front].sum())
+    S = front_information(H, cost, n_residuals, nf)
+    if S is None:
+        return None
+    out = np.zeros((C, N_INTR, N_INTR))
+    for c in range(C):
+        slots = c * N_INTR + np.arange(N_INTR)
+        own = free[slots]
+        if not own.any():
+            continue
+        cols = reduced[slots[own]]
+        rest = np.setdiff1d(np.arange(nf), cols)
+        # marginalise the other front unknowns: a pseudo-inverse, as a direction they leave open is
+        # one the corners do not determine, not one they pin down
+        block = S[np.ix_(cols, cols)] - S[np.ix_(cols, rest)] @ np.linalg.pinv(S[np.ix_(rest, rest)]) @ S[np.ix_(rest, cols)] \
+            if len(rest) else S[np.ix_(cols, cols)]
+        out[c][np.ix_(own, own)] = 0.5 * (block + block.T)
+    return out
 

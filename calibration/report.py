@@ -28,6 +28,9 @@ MAX_GOOD_RMS_PX = 1.0
 MAX_GOOD_EPIPOLAR_PX = 0.5
 MIN_STEREO_VIEWS = 5
 MAX_FOCAL_STD_PCT = 1.0  # a focal length whose one-sigma uncertainty is above this share of it is not trusted
+# A lens term the joint solve moved more than this many of its single-camera fit's sigmas from that fit
+# left its prior: by chance alone a term moves that far about once in 370.
+LENS_PRIOR_SIGMAS = 3.0
 _REGIONS = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
 
 
@@ -149,6 +152,32 @@ def _prior(fit, cam: CameraModel) -> dict[str, Any] | None:
     return out
 
 
+def _lens_prior(fit, cam: CameraModel) -> dict[str, Any] | None:
+    """The camera's own lens fit as the joint solve's prior: per fitted term the fit's value, its
+    sigma there and how far the joint solve moved it; `kept` when no term moved beyond
+    LENS_PRIOR_SIGMAS of them."""
+    if not fit.lens_sigma:
+        return None
+    names = intrinsic_names(cam.model)
+    single = np.asarray(fit.lens_mean, dtype=np.float64)
+    now = np.r_[cam.fx, cam.fy, cam.cx, cam.cy, cam.dist]
+    terms = {}
+    for term, sigma in fit.lens_sigma.items():
+        i = names.index(term)
+        moved = float(now[i] - single[i])
+        terms[term] = {"single": _significant(single[i], 8), "sigma": _significant(sigma), "moved": _significant(moved),
+                       "moved_sigma": round(moved / sigma, 3) if sigma > 0 else None}
+    beyond = [t for t, p in terms.items() if p["moved_sigma"] is not None and abs(p["moved_sigma"]) > LENS_PRIOR_SIGMAS]
+    return {"kept": not beyond, "beyond": beyond, "terms": terms}
+
+
+def _lens_moved_warning(name: str, lp: dict[str, Any], shared_views: int) -> str:
+    moves = ", ".join(f"{t} {lp['terms'][t]['moved']:+.4g} ({lp['terms'][t]['moved_sigma']:+.1f} sigma of its own fit)" for t in lp["beyond"])
+    few = f"too few views shared with the other cameras ({shared_views}), " if shared_views < MIN_GOOD_VIEWS else ""
+    return (f"camera '{name}': the joint solve moved its lens beyond what its own views allow: {moves}; likely causes: {few}"
+            "its images out of step with the others' (timing), a board that is not flat, or a lens its views measured poorly")
+
+
 def build_report(result: CalibrationResult) -> dict[str, Any]:
     obs = result.observations
     rig = result.rig
@@ -204,6 +233,7 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
             "held": list(result.intrinsics[name].held),  # distortion terms held at 0
             "intrinsics_given": result.intrinsics[name].given,  # held at values given beforehand (--intrinsics)
             "prior": _prior(result.intrinsics[name], cam),
+            "lens_prior": _lens_prior(result.intrinsics[name], cam),
             "focal_spread_pct": None if result.intrinsics[name].focal_spread is None else round(100 * result.intrinsics[name].focal_spread, 3),
         }
         first_warning = len(warnings)
@@ -234,6 +264,10 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
                 + ", ".join(f"{k} {per_camera[name][k]:.1f} +- {std_of[k]:.3g} px" for k in loose)
                 + "); show the board at more varied tilts and distances"
             )
+        lp = per_camera[name]["lens_prior"]
+        if lp is not None and not lp["kept"]:
+            shared = int(sum(1 for v in used_views if np.any((obs.view_idx == v) & (obs.cam_idx != ci))))
+            warnings.append(_lens_moved_warning(name, lp, shared))
         spread = result.intrinsics[name].focal_spread
         if spread is not None and spread > SPREAD_WARN:
             warnings.append(f"camera '{name}': {spread_reason(spread, views_used[name])}")
@@ -250,6 +284,8 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
         "views_multi_camera": len(shared_views),
         "per_view": {v: per_view[v] for v in obs.views if v in per_view},
         "rejected": [r.to_dict() for r in result.rejected],
+        # each camera's images tried at other instants against the reference camera (calibration.pairing)
+        "pairing": [{**ch.to_dict(), "line": ch.line() if ch.residuals and ch.best != 0 else None} for ch in result.pairing],
         "converged": bool(result.solution.converged),
         "iterations": int(result.solution.iterations),
         "stereo_rms_px": None,
@@ -362,6 +398,14 @@ def format_report(calib: RigCalibration) -> str:
         if c.get("prior"):
             moves = ", ".join(f"{t} {p['moved']:+.4g} ({p['moved_sigma']:+.2f} sigma)" for t, p in c["prior"].items())
             lines.append(f"intrinsics given as priors, {name}: {moves}")
+    kept = {name: c["lens_prior"] for name, c in rep["cameras"].items() if c.get("lens_prior")}
+    if kept:
+        lines.append(f"lens within its own fit's prior ({LENS_PRIOR_SIGMAS:g} sigma): " + ", ".join(_kept(n, lp) for n, lp in kept.items()))
+    for ch in rep.get("pairing", []):
+        if ch.get("given"):
+            lines.append(f"pairing: {ch['camera']}'s images shifted by {ch['applied']:+d} instants (given)")
+        elif ch.get("applied"):
+            lines.append(f"pairing: {ch['line']}: applied ({ch['applied']:+d})")
     held = {name: c.get("held") for name, c in rep["cameras"].items() if c.get("held")}
     if held:
         terms = sorted({t for h in held.values() for t in h}, key=["k3", "k4", "p1", "p2"].index)
@@ -404,6 +448,12 @@ def format_report(calib: RigCalibration) -> str:
         for w in rep["warnings"]:
             lines.append(f"  - {w}")
     return "\n".join(lines)
+
+
+def _kept(name: str, lp: dict[str, Any]) -> str:
+    if lp["kept"]:
+        return f"{name} yes"
+    return f"{name} no (" + ", ".join(f"{t} {lp['terms'][t]['moved_sigma']:+.1f} sigma" for t in lp["beyond"]) + ")"
 
 
 def _fmt(x) -> str:

@@ -43,6 +43,11 @@ class CameraIntrinsics:
     focal_spread: float | None = None  # relative spread of fx over fits on subsets of the views (calibration.quality)
     model: str = "pinhole"  # lens model (calibration.lens)
     prior: dict[str, float] | None = None  # the given intrinsics were priors: term -> sigma (calibration.known.prior_sigmas)
+    # this fit as the lens's prior in the joint adjustment (calibration.solve.lens_information): its
+    # information matrix over the nine slots, and each fitted term's one-sigma uncertainty from it
+    lens_information: np.ndarray | None = None
+    lens_sigma: dict[str, float] | None = None
+    lens_mean: np.ndarray | None = None  # (9,) the nine slots the prior is centred on (that fit, finished by the adjustment)
 
 
 @dataclass
@@ -71,3 +76,4 @@ class CalibrationResult:
     image_size: dict[str, tuple[int, int]]
     images_seen: dict[str, int] = field(default_factory=dict)
     corners_rejected: dict[str, int] = field(default_factory=dict)  # single corners dropped, per camera
+    pairing: list = field(default_factory=list)  # calibration.pairing.PairingCheck per camera but the left

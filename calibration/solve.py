@@ -2,12 +2,15 @@
 
 1. intrinsics of every camera alone (`cv2.calibrateCamera`; a fisheye lens: `cv2.fisheye.calibrate`
    to start, then the bundle adjustment below on the one camera), views that do not fit rejected;
-2. the stereo pair's extrinsics (`cv2.stereoCalibrate`, intrinsics held; on undistorted coordinates
+2. each camera's pairing with the left camera's instants checked at offsets -2..+2 (calibration.pairing):
+   a camera out of step stops the solve unless its offset is given or `auto_offset` applies it;
+3. the stereo pair's extrinsics (`cv2.stereoCalibrate`, intrinsics held; on undistorted coordinates
    when a camera of the pair has a fisheye lens);
-3. every camera in the left camera's frame, started from the relative poses the board views imply and
+4. every camera in the left camera's frame, started from the relative poses the board views imply and
    refined jointly with the intrinsics and every board pose by bundle adjustment over all views
-   (a board seen by two or more cameras ties them together); observations that do not fit are rejected
-   with the reason and the adjustment is run again.
+   (a board seen by two or more cameras ties them together), each lens held to its own fit of step 1
+   by a prior weighted by what that fit measured (`lens_information`; off with `lens_priors=False`);
+   observations that do not fit are rejected with the reason and the adjustment is run again.
 """
 from __future__ import annotations
 
@@ -56,6 +59,11 @@ class Options:
     fisheye: Any = ()  # cameras with a fisheye lens (names), or True for every camera
     # the `known` intrinsics as priors instead of held: term -> (sigma, percent of f) (calibration.known.parse_prior)
     prior: dict = field(default_factory=dict)
+    # each camera's single-camera fit as a prior in the joint adjustment, weighted by what that fit
+    # measured (False: every fitted term free, the joint corners alone decide; `--free-intrinsics`)
+    lens_priors: bool = True
+    offsets: dict = field(default_factory=dict)  # camera -> instants its images are re-paired by (calibration.pairing)
+    auto_offset: bool = False  # apply an offset the pairing check finds, instead of stopping
 
     def model_of(self, camera: str) -> str:
         """The lens model to fit for `camera`: given intrinsics carry their own."""
@@ -419,6 +427,80 @@ def _initial_camera_poses(order: list[str], intr: dict[str, CameraIntrinsics], s
     return placed
 
 
+def lens_information(fit: CameraIntrinsics, views: dict[str, Corners], object_points: np.ndarray, opts: Options,
+                     size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The lens a camera's own views give and what they say about it: (9,) its nine slots, as the
+    bundle adjustment on this camera alone finishes the single-camera fit, and (9, 9) their
+    information there (bundle.Solution.intrinsics_information, every board pose marginalised) in
+    1 / unit^2 of each slot, zero for held terms. None where the fit leaves the noise unknown."""
+    names = list(fit.poses)
+    planar = [_planar(object_points[views[v].ids]) for v in names]
+    obj = [p[0] for p in planar]
+    problem = bundle.Problem(np.zeros(sum(len(o) for o in obj), dtype=int), np.concatenate([np.full(len(o), k) for k, o in enumerate(obj)]),
+                             np.concatenate(obj), np.concatenate([views[v].points for v in names]), 1, len(obj),
+                             np.array([fit.model == "fisheye"]))
+    views0 = []
+    for v, (_, R, c) in zip(names, planar):  # each view's pose in `_planar`'s local frame, where the points are
+        Rb, tb = fit.poses[v]
+        views0.append(np.r_[rotation_vector(Rb if R is None else Rb @ R), tb if R is None else tb + Rb @ c])
+    names9 = bundle.intrinsic_names(fit.model)
+    fixed = np.zeros((1, bundle.N_INTR), dtype=bool)
+    for term in fit.held:
+        fixed[0, names9.index(term)] = True
+    if opts.centred:
+        fixed[0, [names9.index("cx"), names9.index("cy")]] = True
+    intr0 = np.array([[fit.K[0, 0], fit.K[1, 1], fit.K[0, 2], fit.K[1, 2], *lens.coefficients("pinhole", fit.dist)]])
+    sol = bundle.solve(problem, intr0, np.zeros((1, 6)), np.array(views0), fixed_cameras=(0,), fixed_intrinsics=fixed,
+                       square_pixels=np.array([opts.square_pixels]), max_iterations=20)
+    # the adjustment's own optimum, not OpenCV's stopping point: a prior centred a little off it would
+    # pull exact data off the truth
+    return None if sol.intrinsics_information is None else (sol.intrinsics[0], sol.intrinsics_information[0])
+
+
+def lens_sigmas(info: np.ndarray, model: str) -> dict[str, float]:
+    """The one-sigma uncertainty of each term `info` constrains (its marginal, from the inverse)."""
+    names9 = bundle.intrinsic_names(model)
+    on = np.flatnonzero(np.abs(info).sum(axis=1) > 0)
+    if not len(on):
+        return {}
+    cov = np.linalg.pinv(info[np.ix_(on, on)])
+    return {names9[i]: float(np.sqrt(max(cov[k, k], 0.0))) for k, i in enumerate(on) if names9[i]}
+
+
+def _pair_instants(detections: DetectionSet, intr: dict[str, CameraIntrinsics], order: list[str], left: str,
+                   object_points: np.ndarray, opts: Options, say: Callable[[str], None]):
+    """The offsets given applied, then every other camera's pairing checked against `left`
+    (calibration.pairing); an offset found is applied with `opts.auto_offset`, else the solve stops:
+    poses solved from mispaired views are wrong. Returns (detections, fits, checks) re-paired."""
+    import dataclasses
+
+    from calibration import pairing
+
+    corners = dict(detections.corners)
+    intr = dict(intr)
+    if opts.offsets:
+        pairing.check_offsets(opts.offsets, corners)
+        inst = pairing.instant_order(corners)
+        for c, k in opts.offsets.items():
+            corners[c] = pairing.shift(corners[c], k, inst)
+            intr[c] = pairing.shift_fit(intr[c], k, inst)
+    say("checking that every camera's images are paired with the same instants")
+    checks = pairing.check_pairing(left, order, corners, intr, object_points, detections.image_size[left], opts.offsets)
+    found = [ch for ch in checks if ch.clear]
+    if found and not opts.auto_offset:
+        raise CalibrationError(
+            "; ".join(ch.line() for ch in found) + ": a rig solved from views paired with the wrong instants is wrong; "
+            + "apply it with " + " ".join(f"--offset {ch.camera}={ch.best:+d}" for ch in found) + " or --auto-offset")
+    if found:
+        inst = pairing.instant_order(corners)
+        for ch in found:
+            corners[ch.camera] = pairing.shift(corners[ch.camera], ch.best, inst)
+            intr[ch.camera] = pairing.shift_fit(intr[ch.camera], ch.best, inst)
+            ch.applied = ch.best
+            say(ch.line() + f": applied ({ch.best:+d})")
+    return dataclasses.replace(detections, corners=corners), intr, checks
+
+
 def calibrate_rig(
     detections: DetectionSet,
     board: BoardSpec,
@@ -439,8 +521,19 @@ def calibrate_rig(
     for c in order:
         say(f"intrinsics of {c}")
         intr[c] = calibrate_intrinsics(c, detections.image_size[c], detections.corners[c], object_points, opts, rejected)
+
+    # A lens does not depend on which instant its images belong to; the rig does: the pairing is
+    # checked (and the solve stopped) before the slower measures of each lens below.
+    detections, intr, checks = _pair_instants(detections, intr, order, left, object_points, opts, say)
+
+    for c in order:
         kept = {v: detections.corners[c][v] for v in intr[c].view_rms}
         intr[c].focal_spread = resampled_spread(c, detections.image_size[c], kept, object_points, opts, intr[c].K, intr[c].dist)
+        if opts.lens_priors and not intr[c].given:
+            measured = lens_information(intr[c], kept, object_points, opts, detections.image_size[c])
+            if measured is not None:
+                intr[c].lens_mean, intr[c].lens_information = measured
+                intr[c].lens_sigma = lens_sigmas(intr[c].lens_information, intr[c].model)
 
     stereo = None
     if right is not None:
@@ -491,6 +584,11 @@ def calibrate_rig(
             fixed_intr[ci, names9.index("cx")] = fixed_intr[ci, names9.index("cy")] = True
     square = np.array([opts.square_pixels and not intr[c].given for c in order])
     prior_px = np.full((len(order), bundle.N_INTR), np.inf)  # each slot's prior sigma, for a corner noise of 1 px
+    # each lens's own fit as its prior (information per unit of chi-square, scaled to the corners' noise below)
+    lens_info = np.zeros((len(order), bundle.N_INTR, bundle.N_INTR))
+    for ci, c in enumerate(order):
+        if intr[c].lens_information is not None:
+            lens_info[ci] = intr[c].lens_information
     priors: dict[str, dict[str, float]] = {}
     for ci, c in enumerate(order):
         if intr[c].given and opts.prior:
@@ -503,7 +601,10 @@ def calibrate_rig(
     # The priors weigh against the corners in their noise's units: their measured noise, first from
     # the single-camera fits, then from the joint fit's views.
     noise_px = float(np.median([e for c in order for e in intr[c].view_rms.values()])) / np.sqrt(2.0)
-    prior_mean = intr0.copy()  # the given values: the priors' centres whatever the rounds move
+    for ci, c in enumerate(order):  # a lens prior is centred on its camera's own adjustment, which starts it too
+        if intr[c].lens_mean is not None:
+            intr0[ci] = intr[c].lens_mean
+    prior_mean = intr0.copy()  # the given values and own fits: the priors' centres whatever the rounds move
 
     active = np.ones(len(uv), dtype=bool)
     corners_rejected = np.zeros(len(order), dtype=int)
@@ -515,7 +616,7 @@ def calibrate_rig(
         w = None if sigma is None else 1.0 / sigma[active] ** 2
         sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr, weights=w,
                            square_pixels=square, prior_std=prior_px / max(noise_px, 1e-3) if priors else None,
-                           prior_mean=prior_mean)
+                           prior_mean=prior_mean, prior_information=lens_info * noise_px ** 2 if lens_info.any() else None)
         intr0, cams0, view_pose = sol.intrinsics, sol.cameras, sol.views
         if round_ == opts.max_rounds - 1:
             break
@@ -578,6 +679,6 @@ def calibrate_rig(
     rig = RigCalibration(cameras, {})
     obs = Observations(order, views, cam_idx[active], view_idx[active], ids[active], uv[active], sol.residuals)
     result = CalibrationResult(rig, left, right, obs, intr, rejected, stereo, sol, dict(detections.image_size), dict(detections.images_seen),
-                               {c: int(n) for c, n in zip(order, corners_rejected)})
+                               {c: int(n) for c, n in zip(order, corners_rejected)}, checks)
     rig.meta.update(summary_meta(result, board))
     return result

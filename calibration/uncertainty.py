@@ -72,3 +72,17 @@ def _schur_complement(H: np.ndarray, nf: int) -> np.ndarray | None:
     B = H[:nf, nf:]
     BD = (B.reshape(nf, m, POSE).transpose(1, 0, 2) @ np.linalg.inv(D)).transpose(1, 0, 2).reshape(nf, m * POSE)
     return H[:nf, :nf] - BD @ B.T
+
+
+def front_information(H: np.ndarray, cost: float, n_residuals: int, n_front: int) -> np.ndarray | None:
+    """The information (inverse covariance) of the first `n_front` parameters with the trailing pose
+    blocks marginalised, in 1 / unit^2 of each parameter: H's Schur complement over the noise
+    variance. None when the noise cannot be estimated or a pose block is singular."""
+    n = len(H)
+    dof = n_residuals - n
+    if dof <= 0 or not cost > 0:
+        return None
+    S = _schur_complement(H, n_front) if n_front < n else H
+    if S is None:
+        return None
+    return S / (cost / dof)

@@ -55,6 +55,14 @@ def register(subparsers) -> None:
                         "length; k1 k2 k3 k4 p1 p2, or dist for all); terms not named stay held")
     r.add_argument("--hold", action="append", metavar="NAME",
                    help="with --intrinsics: hold only this camera (repeatable; default: every camera the file has)")
+    r.add_argument("--free-intrinsics", action="store_true",
+                   help="let the joint adjustment move every fitted lens term freely (by default each camera's own lens fit "
+                        "is a prior there, weighted by how well its views measured it)")
+    r.add_argument("--offset", action="append", metavar="CAMERA=N",
+                   help="pair CAMERA's images with the instants N later (negative: earlier) than their names say, as cam_1=+1 "
+                        "(repeatable); such a camera is not checked for being out of step")
+    r.add_argument("--auto-offset", action="store_true",
+                   help="apply the offset the pairing check finds for a camera out of step (by default the run stops and names it)")
     r.add_argument("--force", action="store_true", help="replace an existing calibration file")
     r.add_argument("--json", action="store_true", help="print one JSON object with the results")
     r.set_defaults(func=cmd_run)
@@ -165,6 +173,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     images = find_images(args.images)
     known = _known_intrinsics(args, images.cameras)
     _check_fisheye(args, images.cameras)
+    from calibration.pairing import check_offsets, parse_offsets
+
+    offsets = parse_offsets(args.offset)
+    check_offsets(offsets, images.paths)  # before the detection, which takes minutes
     prior = {}
     if args.prior_sigma is not None:
         from calibration.known import parse_prior, prior_sigmas
@@ -186,7 +198,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 roles[role] = cam.name
     # Where the result goes is checked before the detection and the solve, which take minutes.
     output, detections = _detect_for(args, images, board)
-    opts = _lens_options(args, left=args.left or roles.get("left"), right=args.right or roles.get("right"), known=known, prior=prior)
+    opts = _lens_options(args, left=args.left or roles.get("left"), right=args.right or roles.get("right"), known=known, prior=prior,
+                         lens_priors=not args.free_intrinsics, offsets=offsets, auto_offset=args.auto_offset)
     status = _status()
     result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
     status.done()
@@ -222,6 +235,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                         "focal_spread_pct": meta["report"]["cameras"][c.name].get("focal_spread_pct")}
                                for c in rig.cameras},
             "rejected": meta["rejected"],
+            "pairing": meta["report"].get("pairing", []),
             "warnings": meta["report"]["warnings"],
             **({"calibration": rig.to_dict()} if written is None else {}),
         })

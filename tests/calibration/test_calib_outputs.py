@@ -136,16 +136,23 @@ def unusable_views(views) -> Path:
 
 
 def test_a_rig_no_lens_explains_is_not_written_nor_replaces_a_calibration(views, unusable_views, tmp_path):
-    """Each camera alone fits, the pair does not (its views are of different instants): one line that
-    says so, exit 2, the calibration already there kept, and no numpy warning on the way."""
+    """Each camera alone fits, the pair does not (its views are of different instants): the pairing
+    check names the camera out of step; with its pairing kept as named (`--offset right=0`) the joint
+    solve fits no lens: one line that says so, exit 2, the calibration already there kept, and no
+    numpy warning on the way."""
     calib = tmp_path / "calib.json"
     arc_rig(2).save(calib)
     before = calib.read_text()
     proc = _rig("calibrate", "run", "--images", unusable_views / "shifted", "--board", views / "board.toml", "-o", calib, "--force", cwd=tmp_path)
+    _one_line(proc, 2, "right's images fit best one instant later (", "--offset right=+1")
+    assert calib.read_text() == before
+    proc = _rig("calibrate", "run", "--images", unusable_views / "shifted", "--board", views / "board.toml", "-o", calib, "--force",
+                "--offset", "right=0", cwd=tmp_path)
     line = _one_line(proc, 2, "unusable", "'left'", "'right'", "nothing was written", "share a name or number")
     assert "RuntimeWarning" not in proc.stderr, line
     assert calib.read_text() == before and "verdict: left unusable, right unusable" in proc.stdout  # the report says why
-    proc = _rig("calibrate", "run", "--images", unusable_views / "shifted", "--board", views / "board.toml", "-o", "new.json", "--json", cwd=tmp_path)
+    proc = _rig("calibrate", "run", "--images", unusable_views / "shifted", "--board", views / "board.toml", "-o", "new.json", "--json",
+                "--offset", "right=0", cwd=tmp_path)
     assert proc.returncode == 2 and json.loads(proc.stdout)["exit_code"] == 2 and not (tmp_path / "new.json").exists()
 
 

@@ -129,3 +129,34 @@ def test_the_reference_intrinsics_as_priors_fit_better_than_held_and_keep_the_po
             angle = np.degrees(np.arccos(np.clip((np.trace(rel @ cv2.Rodrigues(ref[name][0])[0].T) - 1) / 2, -1, 1)))
             ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
             assert angle < 2.5 and abs(ratio - 1) < 0.05, (model, name, angle, ratio)
+
+
+def test_a_camera_renumbered_one_instant_late_is_named_and_applying_the_offset_restores_the_poses(sleap, tmp_path, capsys):
+    """mid's images renamed N -> N + 1 (its video numbered from one frame later): the pairing check
+    names it; with `--offset mid=-1` the poses match both OpenCV references again."""
+    from rig.cli import main
+
+    images = tmp_path / "images"
+    for cam in ("back", "mid", "side", "top"):
+        (images / cam).mkdir(parents=True)
+        for f in (sleap / cam).glob("*.jpg"):
+            stem, n = f.stem.rsplit("-", 1)
+            name = f"{stem}-{int(n) + 1}.jpg" if cam == "mid" else f.name
+            (images / cam / name).symlink_to(f)
+    out = tmp_path / "calib.json"
+    argv = ["calibrate", "run", "--images", str(images), "--board", str(sleap / "board.toml"), "--left", "back", "-o", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "mid's images fit best one instant earlier (" in err and "--offset mid=-1" in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+    summary = run_json(*argv, "--offset", "mid=-1")
+    rig = RigCalibration.load(out)
+    assert [p["applied"] for p in summary["pairing"] if p["camera"] == "mid"] == [-1]
+    back = rig["back"]
+    for model, ref in references(sleap).items():
+        for name in ("mid", "side", "top"):
+            rel = rig[name].R @ back.R.T
+            centre = back.R @ (rig[name].center - back.center) * 1000.0
+            angle = np.degrees(np.arccos(np.clip((np.trace(rel @ cv2.Rodrigues(ref[name][0])[0].T) - 1) / 2, -1, 1)))
+            ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
+            assert angle < 2.5 and abs(ratio - 1) < 0.05, (model, name, angle, ratio)

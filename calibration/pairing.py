@@ -1,0 +1,166 @@
+"""Which instant each camera's images belong to: a camera whose frames are out of step with the others'
+(a video started a frame late, a free-running camera whose frames were numbered from another start)
+pairs every view with the wrong instant of a moving board, and a rig solved from such pairs is wrong
+however well each lens was fitted.
+
+An instant is a position in the sorted list of the names all cameras' views carry (`0000`, `0001`, ...
+or the number that ends a file name): offset +1 pairs a camera's image named after position p with
+the others' images of position p + 1. Before the joint solve each camera is tried against the
+reference camera (the rig's left camera) at offsets -2..+2: the pair's stereo residual with both
+lenses held (`cv2.stereoCalibrate`, calibration.solve.stereo_pair) at each offset. A clear winner
+other than 0 means the camera is out of step.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.camera import CalibrationError
+from calibration.detect import Corners
+from calibration.result import CameraIntrinsics
+
+SEARCH = (-2, -1, 0, 1, 2)
+MIN_PAIRED_VIEWS = 4  # views the camera and the reference must share at an offset to compare it
+# The best offset wins clearly when its residual is at most this share of the residual at 0 (the
+# example that motivated the check: 0.53 against 1.05 px); a static board, or a board that moves
+# little between instants, leaves the residuals close and the images as they are.
+CLEAR_RATIO = 0.7
+
+
+@dataclass
+class PairingCheck:
+    camera: str
+    reference: str
+    residuals: dict[int, float]  # offset -> stereo RMS px (offsets with too few shared views absent)
+    best: int  # the offset with the least residual
+    clear: bool  # best is not 0 and wins clearly
+    applied: int = 0  # the offset applied to this camera's images (given or found)
+    given: bool = False  # the offset was given (--offset), not searched for
+
+    def line(self) -> str:
+        """One line: which instant the images fit best, with the residuals."""
+        k = self.best
+        when = f"{_count(abs(k))} instant{'s' if abs(k) > 1 else ''} {'later' if k > 0 else 'earlier'}"
+        return f"{self.camera}'s images fit best {when} ({self.residuals[k]:.2f} vs {self.residuals[0]:.2f} px)"
+
+    def to_dict(self) -> dict:
+        return {"camera": self.camera, "reference": self.reference, "residuals_px": {f"{k:+d}": round(v, 4) for k, v in self.residuals.items()},
+                "best": self.best, "clear": self.clear, "applied": self.applied, "given": self.given}
+
+
+def _count(n: int) -> str:
+    return {1: "one", 2: "two"}.get(n, str(n))
+
+
+def instant_order(views_per_camera: dict[str, list[str]] | dict[str, dict]) -> list[str]:
+    """Every instant any camera has an image of, in order (names compared as natural sort keys)."""
+    from calibration.solve import natural_key
+
+    return sorted({v for per in views_per_camera.values() for v in per}, key=natural_key)
+
+
+def shifted_name(view: str, offset: int, order: list[str], index: dict[str, int] | None = None) -> str | None:
+    """The instant `offset` positions after `view` in `order`; None beyond either end."""
+    p = (index or {v: i for i, v in enumerate(order)})[view] + offset
+    return order[p] if 0 <= p < len(order) else None
+
+
+def shift(per_view: dict, offset: int, order: list[str]) -> dict:
+    """A camera's per-view mapping re-keyed by `offset` instants; views shifted past the ends drop out."""
+    if offset == 0:
+        return dict(per_view)
+    index = {v: i for i, v in enumerate(order)}
+    out = {}
+    for v, x in per_view.items():
+        to = shifted_name(v, offset, order, index)
+        if to is not None:
+            out[to] = x
+    return out
+
+
+def shift_fit(fit: CameraIntrinsics, offset: int, order: list[str]) -> CameraIntrinsics:
+    """A single-camera fit whose views are re-keyed by `offset` (the lens does not depend on pairing)."""
+    return dataclasses.replace(fit, poses=shift(fit.poses, offset, order), view_rms=shift(fit.view_rms, offset, order))
+
+
+def check_offsets(offsets: dict[str, int], views_per_camera: dict[str, list[str]] | dict[str, dict], where: str = "--offset") -> None:
+    """Given offsets must name cameras that have images and leave each such camera MIN_PAIRED_VIEWS
+    instants paired with the others; CalibrationError (one line) otherwise, before anything is done."""
+    cams = list(views_per_camera)
+    order = instant_order(views_per_camera)
+    for name, k in offsets.items():
+        if name not in views_per_camera:
+            raise CalibrationError(f"{where} {name}={k:+d}: no images of camera '{name}' (cameras: {', '.join(cams)})")
+        others = {v for c, per in views_per_camera.items() if c != name for v in per}
+        paired = set(shift({v: None for v in views_per_camera[name]}, k, order)) & others
+        if len(paired) < MIN_PAIRED_VIEWS:
+            limit = max(len(order) - MIN_PAIRED_VIEWS, 0)
+            raise CalibrationError(
+                f"{where} {name}={k:+d}: the images span {len(order)} instants; shifted by {k:+d}, {len(paired)} of camera '{name}''s "
+                f"would be paired with another camera's ({MIN_PAIRED_VIEWS} are needed; offsets up to +-{limit} at most)")
+
+
+def parse_offsets(specs: list[str] | None) -> dict[str, int]:
+    """`["cam_1=+1", "cam_2=-2"]` -> {"cam_1": 1, "cam_2": -2}; CalibrationError (one line) on a bad spec."""
+    out: dict[str, int] = {}
+    for spec in specs or ():
+        name, eq, value = str(spec).partition("=")
+        name, value = name.strip(), value.strip()
+        try:
+            k = int(value)
+        except ValueError:
+            k = None
+        if not eq or not name or k is None:
+            raise CalibrationError(f"--offset {spec!r}: expected CAMERA=N with N a whole number of instants, as cam_1=+1")
+        if name in out:
+            raise CalibrationError(f"--offset {spec!r}: camera '{name}' is given an offset twice")
+        out[name] = k
+    return out
+
+
+def stereo_residual(reference: str, camera: str, corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
+                    object_points: np.ndarray, size: tuple[int, int], offset: int, order: list[str]) -> float | None:
+    """The pair's stereo RMS (px) with both lenses held when `camera`'s images are shifted by `offset`;
+    None when they would share fewer than MIN_PAIRED_VIEWS views."""
+    from calibration.solve import stereo_pair
+
+    moved = shift_fit(intr[camera], offset, order)
+    if len(set(moved.poses) & set(intr[reference].poses)) < MIN_PAIRED_VIEWS:
+        return None
+    pair = {reference: corners[reference], camera: shift(corners[camera], offset, order)}
+    try:
+        out = stereo_pair(reference, camera, pair, {reference: intr[reference], camera: moved}, object_points, size)
+    except Exception:  # noqa: BLE001 - OpenCV refuses some hopeless pairings outright: no residual there
+        return None
+    if out is None or out["views"] < MIN_PAIRED_VIEWS or not np.isfinite(out["rms_px"]):
+        return None
+    return float(out["rms_px"])
+
+
+def check_pairing(reference: str, cameras: list[str], corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
+                  object_points: np.ndarray, size: tuple[int, int], given: dict[str, int] | None = None) -> list[PairingCheck]:
+    """Each camera but the reference tried at offsets -2..+2 against it; cameras given an offset are
+    not searched (their check records the offset as given). Cameras sharing too few views with the
+    reference at offset 0 are left out."""
+    given = given or {}
+    order = instant_order(corners)
+    checks = []
+    for cam in cameras:
+        if cam == reference:
+            continue
+        if cam in given:
+            checks.append(PairingCheck(cam, reference, {}, given[cam], False, given[cam], True))
+            continue
+        residuals = {}
+        for k in SEARCH:
+            r = stereo_residual(reference, cam, corners, intr, object_points, size, k, order)
+            if r is not None:
+                residuals[k] = r
+        if 0 not in residuals:
+            continue
+        best = min(residuals, key=residuals.get)
+        clear = best != 0 and residuals[best] <= CLEAR_RATIO * residuals[0]
+        checks.append(PairingCheck(cam, reference, residuals, best, clear))
+    return checks
