@@ -114,7 +114,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from calibration.compare import describe, errors_against_truth
     from rig.sim.rig_config import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.config import dump_config, parse_config
-    from rig.commands._demo_views import render_novel_views, render_strip
+    from rig.render.novel_views import render_novel_views, render_strip
     from simulator.calibration_session import CalibrationSession
 
     _check_arguments(args)

@@ -482,73 +482,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov")
-def _render_source(args: argparse.Namespace):
-    """The sequence, its source camera names, every calibrated camera (the presets) and the rig."""
-    from calibration.camera import RigCalibration
-    from rig.errors import ConfigError
-    from rig.storage.dataset import Sequence
-    from rig.storage.layout import SequenceError
-
-    root = args.sequence
-    if not root.is_dir():
-        raise ConfigError(f"--sequence {root}: no such sequence folder")
-    if (root / "dataset.json").is_file():
-        raise ConfigError(f"--sequence {root}: is a data set of several takes; name one of them")
-    seq = Sequence(root)
-    left, right = seq.sources()
-    cameras = []
-    for name in seq.camera_names:
-        try:
-            cameras.append(seq.camera_model(name))
-        except SequenceError:
-            if name in (left, right):
-                raise
-    return seq, left, right, RigCalibration(cameras)
-
-
-def _viewpoint_message(args: argparse.Namespace, view: str | float) -> dict:
-    message: dict = {"type": "viewpoint"}
-    try:
-        message["t"] = float(view)
-    except ValueError:
-        message["preset"] = view
-    for key in ("yaw", "pitch", "zoom"):
-        if getattr(args, key) is not None:
-            message[key] = getattr(args, key)
-    return message
-
-
-def _parse_view(args: argparse.Namespace, view: str | float, rig, sources):
-    from rig.errors import ConfigError
-    from rig.live.viewpoint import parse_viewpoint
-
-    message = _viewpoint_message(args, view)
-    if "preset" in message and message["preset"] not in rig:
-        raise ConfigError(f"--view {view}: no camera {view!r} in the sequence's calibration "
-                          f"(cameras: {', '.join(rig.names)}; or a number from 0 to 1 along the arc)")
-    try:
-        return parse_viewpoint(message, rig, sources=sources)
-    except ValueError as exc:
-        raise ConfigError(f"--view {view}: {exc}") from None
-
-
-def _two_part_render(pipe):
-    """NovelViewPipeline.render's call for a two-part runtime: stage 1 then the view (ms: both)."""
-    def render(left, right, left_cam, right_cam, target, left_depth=None, right_depth=None):
-        feeds = pipe.source_feeds(left, right, left_cam, right_cam)
-        view = pipe.render(pipe.stage1(feeds), feeds, target)
-        view.ms = pipe.stage1_ms + pipe.view_ms
-        return view
-    return render
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    import statistics
-
-    from inference.errors import InferenceError
     from rig.commands._output import emit_json
     from rig.commands._paths import output_file
     from rig.errors import ConfigError
+    from rig.live.app import parse_device
+    from rig.render.take import Steer, open_renderer, open_take, plan_views, render_take, summary
 
     out = output_file(args.output)
     suffixes = VIDEO_SUFFIXES if args.orbit else IMAGE_SUFFIXES
@@ -565,112 +506,21 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.fps is not None and not 0 < args.fps <= 1000:
         raise ConfigError(f"--fps must be between 0 and 1000, got {args.fps:g}")
 
-    seq, left, right, rig = _render_source(args)
-    sources = (left, right)
-    n_sets = len(seq)
-    if args.set >= n_sets:
-        raise ConfigError(f"--set {args.set}: out of range ({seq.root} has {n_sets} frame set{'s' * (n_sets != 1)}: 0 to {n_sets - 1})"
-                          if n_sets else f"--set {args.set}: {seq.root} has no frame sets")
-    if args.orbit:
-        frames = args.frames if args.frames is not None else n_sets - args.set
-        if args.set + frames > n_sets:
-            raise ConfigError(f"--frames {frames} from --set {args.set}: {seq.root} has only {n_sets - args.set} sets from there")
-        positions = list(range(args.set, args.set + frames))
-        ts = [0.5] if frames == 1 else [i / (frames - 1) for i in range(frames)]
-        viewpoints = [_parse_view(args, t, rig, sources) for t in ts]
-    else:
-        positions = [args.set]
-        viewpoints = [_parse_view(args, args.view, rig, sources)]
-    for p in positions:
-        missing = [n for n in sources if seq.rows[p]["frames"].get(n) is None]
-        if missing:
-            raise ConfigError(f"--set {p}: frame set {p} of {seq.root} has no frame of {' and '.join(missing)} (a dropped frame); choose another set")
-
-    from rig.live.app import parse_device
-
-    device = parse_device(args.device)
-    if device != "cpu":
-        if args.providers:
-            raise ConfigError(f"--providers is for ONNX Runtime (--device cpu); --device {device} renders in torch")
-        from rig.live.app import gpu_runtime
-
-        pipe = gpu_runtime(device).TorchLivePipeline(args.model, device, args.size, compile=False)
-        render = _two_part_render(pipe)
-        needs_depth = False  # the GPU runtime refuses an oracle model
-    else:
-        if args.size is not None:
-            raise ConfigError("--size is for --device cuda (the ONNX model's sizes are fixed at export)")
-        from inference.runtime import NovelViewPipeline
-
-        model = args.model
-        if model is None:
-            from inference.runtime.shipped import shipped_onnx
-
-            try:
-                model = shipped_onnx()
-            except InferenceError:
-                raise ConfigError("no shipped model in this installation (models/splat-sap-preview.onnx); "
-                                  "name one with --model M.onnx (rig model export)") from None
-        pipe = NovelViewPipeline(model, providers=_providers(args.providers))
-        render = pipe.render
-        needs_depth = pipe.info.needs_depth
-    if needs_depth and not seq.has_ground_truth():
-        raise ConfigError(f"{model}: an oracle model reads ground-truth depth, which only simulator takes have; render a trained model")
-    size = tuple(pipe.sizes.output)
+    take = open_take(args.sequence)
+    plan = plan_views(take, args.set, Steer(args.yaw, args.pitch, args.zoom),
+                      view=None if args.orbit else args.view, frames=args.frames)
+    renderer = open_renderer(args.model, parse_device(args.device), _providers(args.providers), args.size)
     status = _status()
-    times: list[float] = []
-
-    def views():
-        for i, (p, vp) in enumerate(zip(positions, viewpoints)):
-            status.update(f"rendering {i + 1}/{len(positions)} (set {p}, {vp.label()}) ...", force=True)
-            sample = seq.sample(p, [left, right], with_depth=needs_depth)
-            target = vp.camera(rig, size, sources=sources)
-            view = render(sample.images[left], sample.images[right], sample.cameras[left], sample.cameras[right], target,
-                          sample.depth.get(left), sample.depth.get(right))
-            times.append(view.ms)
-            yield view.image_uint8()
-
-    codec = label = None
-    if args.orbit:
-        from rig.live.video import write_video
-
-        fps = args.fps or float(seq.meta.rate_hz or 30.0)
-        video = write_video(out, views(), fps)
-        written, codec, label = video.frames, video.codec, video.codec_label
-    else:
-        import cv2
-
-        from common.files import atomic_path
-        from inference.errors import OutputError
-
-        rgb = next(views())
-        with atomic_path(out) as tmp:
-            if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-                raise OutputError(f"{out}: could not write the image")
-        written = 1
+    done = render_take(take, plan, renderer, out, fps=args.fps, progress=lambda text: status.update(text, force=True))
     status.done()
-    info = {
-        "output": str(out),
-        "kind": "video" if args.orbit else "image",
-        "model": str(pipe.path),
-        "providers": getattr(pipe, "providers", None),
-        "runtime": pipe.runtime_status() if device != "cpu" else {"kind": "onnxruntime", "providers": pipe.providers},
-        "sequence": str(seq.root),
-        "sets": positions,
-        "sources": list(sources),
-        "viewpoints": [vp.describe() for vp in viewpoints],
-        "size": list(size),
-        "frames": written,
-        "codec": codec,
-        "fps": fps if args.orbit else None,
-        "model_ms_median": round(statistics.median(times), 1) if times else None,
-    }
+    info = summary(take, plan, renderer, out, done)
+    size, positions = done.size, plan.positions
     if args.json:
         emit_json(info)
     elif args.orbit:
-        print(f"wrote {out}: {written} frames at {fps:g} fps, {size[0]}x{size[1]}, {label} ({codec}); sets {positions[0]} to {positions[-1]}, "
-              f"left to right; model {info['model_ms_median']} ms per frame (median)")
+        print(f"wrote {out}: {done.frames} frames at {done.fps:g} fps, {size[0]}x{size[1]}, {done.codec_label} ({done.codec}); "
+              f"sets {positions[0]} to {positions[-1]}, left to right; model {info['model_ms_median']} ms per frame (median)")
     else:
-        vp = viewpoints[0]
+        vp = plan.viewpoints[0]
         print(f"wrote {out}: {size[0]}x{size[1]}, set {positions[0]}, view {vp.label()}; model {info['model_ms_median']} ms")
     return 0

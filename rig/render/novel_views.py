@@ -1,4 +1,4 @@
-"""The demo's last step: novel views of the recorded take, rendered by the shipped model.
+"""Novel views of a recorded take in place of its supervision cameras, rendered by the shipped model (the demo's last step).
 
 For a few frame sets spread over the take, every supervision camera is rendered from the two
 sources with the ONNX Runtime pipeline (the live path: no torch) and compared with what that camera
