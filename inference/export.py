@@ -227,6 +227,7 @@ def export_onnx(
     seed: int = 0,
     optimize: bool = False,
     external_data_limit: int | None = None,
+    shared_data: bool = False,
 ) -> ExportResult:
     """Export `model` to `path` (and `<stem>.fp16.onnx` beside it when fp16). Raises InferenceError.
 
@@ -234,6 +235,9 @@ def export_onnx(
     export time; by default only constants are folded and dead nodes removed, and ONNX Runtime
     (or TensorRT) fuses what it can when it loads the model. A file set whose weights exceed
     `external_data_limit` bytes (default onnx_weights.EXTERNAL_DATA_LIMIT, 2 GB) keeps them in one data file beside it (inference.onnx_weights).
+    `shared_data` keeps the weights of the fp32 file and all its parts once, in one data file beside
+    M.onnx whatever their size (inference.onnx_weights.share_data): a quarter of the bytes of
+    self-contained files, as the shipped models are stored.
     """
     if external_data_limit is None:
         external_data_limit = onnx_weights.EXTERNAL_DATA_LIMIT  # read at call time (tests lower it)
@@ -282,6 +286,9 @@ def export_onnx(
         parts += [target for _, target in halves[1:]]
     if _has_scale_search(model):
         parts.append(_export_unscaled_stage1(model, arrays, opset, optimize, meta, path, external_data_limit))
+    if shared_data:
+        fp32 = [path] + [p for p in parts if fp16_path is None or not p.name.startswith(fp16_path.stem + ".")]
+        data[0] = onnx_weights.share_data(fp32)
     return ExportResult(path, fp16_path, names, opset, tuple(parts), slimmed, tuple(d for d in data if d is not None))
 
 

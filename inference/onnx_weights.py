@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+from google.protobuf.message import DecodeError
 from onnx import TensorProto, numpy_helper
 
 from common.files import atomic_path
@@ -165,3 +166,66 @@ def _remove_stale(path: Path, keep: Path | None) -> None:
                 p.unlink()
             except OSError:
                 pass
+
+
+def share_data(paths: list[Path], min_bytes: int = DETACH_MIN_BYTES) -> Path:
+    """Rewrite the model files `paths` (a model and its parts, written by one export) so that their
+    weights live once, in one data file beside the first: `<first.onnx>.<digest>.data`.
+
+    The whole file and its parts hold the same weights, and the part without the scale search is a
+    separate trace whose initializers have other names: tensors are matched by content (element
+    type and bytes), not by name, so each value is stored once whatever the file and the name.
+    The data file is written (atomically, its digest in its name) before any model is rewritten,
+    and each model is replaced atomically: an interrupted run leaves every file readable. Earlier
+    data files of these models are removed once all are rewritten. Returns the data file."""
+    paths = [Path(p) for p in paths]
+    protos = []
+    for p in paths:
+        try:
+            protos.append(onnx.load(str(p)))  # external data of an earlier export is read in too
+        except (OSError, DecodeError, ValueError) as exc:
+            raise OutputError(f"{p}: cannot read the model ({exc})") from None
+    values: dict[str, np.ndarray] = {}  # content key -> value, in first-seen order
+    keys_of: list[list[tuple[TensorProto, str]]] = []
+    for proto in protos:
+        refs = []
+        for init in proto.graph.initializer:
+            arr = numpy_helper.to_array(init)
+            if arr.nbytes < min_bytes:
+                continue
+            buf = np.ascontiguousarray(arr).astype(arr.dtype.newbyteorder("<"), copy=False)
+            key = hashlib.sha256(f"{init.data_type}\0".encode() + buf.tobytes()).hexdigest()
+            values.setdefault(key, buf)
+            refs.append((init, key))
+        keys_of.append(refs)
+    digest = hashlib.sha256("".join(values).encode()).hexdigest()[:16]
+    data_path = paths[0].with_name(f"{paths[0].name}.{digest}.data")
+    offsets: dict[str, tuple[int, int]] = {}
+    try:
+        with atomic_path(data_path) as tmp, open(tmp, "wb") as f:
+            pos = 0
+            for key, buf in values.items():
+                # a large tensor starts on a page, so ONNX Runtime can map it; a small one only
+                # on 64 bytes, which spares most of the padding of a model of many small tensors
+                align = ALIGN if buf.nbytes >= ALIGN else 64
+                pad = (-pos) % align
+                f.write(b"\0" * pad)
+                pos += pad
+                f.write(buf.data)
+                offsets[key] = (pos, buf.nbytes)
+                pos += buf.nbytes
+    except OSError as exc:
+        raise OutputError(f"{data_path}: cannot write ({exc.strerror or exc})") from None
+    for proto, refs, target in zip(protos, keys_of, paths):
+        for init, key in refs:
+            _clear_data(init)
+            _set_external(init, data_path.name, *offsets[key])
+        try:
+            with atomic_path(target) as tmp:
+                onnx.save_model(proto, str(tmp), save_as_external_data=False)
+        except OSError as exc:
+            raise OutputError(f"{target}: cannot write ({exc.strerror or exc})") from None
+        onnx.checker.check_model(str(target))
+    for target in paths:
+        _remove_stale(target, keep=data_path)
+    return data_path

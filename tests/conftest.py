@@ -72,7 +72,7 @@ class Exported:
     backbone: str
 
 
-def _export(tmp_path_factory, backbone: str) -> Exported:
+def _export(tmp_path_factory, backbone: str, *options: str) -> Exported:
     """Export through the command line, as a user would; once per test run, also when pytest-xdist
     runs the tests in several processes (they share the parent of their temp folders, and the
     first to take the lock exports)."""
@@ -87,11 +87,11 @@ def _export(tmp_path_factory, backbone: str) -> Exported:
         out = folder / f"{backbone}.onnx"
         if not out.is_file():
             folder.mkdir(exist_ok=True)
-            _export_to(out, backbone)
+            _export_to(out, backbone, *options)
     return Exported(out, backbone)
 
 
-def _export_to(out: Path, backbone: str) -> None:
+def _export_to(out: Path, backbone: str, *options: str) -> None:
     import contextlib
     import io
     import json
@@ -100,7 +100,7 @@ def _export_to(out: Path, backbone: str) -> None:
 
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        rc = main(["model", "export", "--backbone", backbone, "--size", "test", "--fp16", "-o", str(out), "--json"])
+        rc = main(["model", "export", "--backbone", backbone, "--size", "test", "--fp16", *options, "-o", str(out), "--json"])
     assert rc == 0 and out.is_file()
     assert json.loads(printed.getvalue())["files"] == [str(out), str(out.with_name(f"{backbone}.fp16.onnx"))]
 
@@ -112,4 +112,5 @@ def tiny_onnx(tmp_path_factory) -> Exported:
 
 @pytest.fixture(scope="session")
 def oracle_onnx(tmp_path_factory) -> Exported:
-    return _export(tmp_path_factory, "oracle")
+    # its weights in one data file beside it, as the shipped models: every test of it reads them so
+    return _export(tmp_path_factory, "oracle", "--shared-data")

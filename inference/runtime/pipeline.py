@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -135,8 +136,17 @@ def open_session(path: str | os.PathLike, providers: list[str] | None = None, th
     chosen = available_providers(providers)
     precision = model_precision(path) if "TensorrtExecutionProvider" in chosen else "fp32"  # only TensorRT's options depend on it
     try:
-        return ort.InferenceSession(str(path), sess_options=opts, providers=provider_options(chosen, path, precision))
+        # by its real path: ONNX Runtime looks for a model's data file (`--shared-data`) in the folder
+        # of the path it is given and refuses one outside the model file's real folder, so a link to
+        # a model (the installed package's models/ is one in a source tree) reads the data beside the file
+        return ort.InferenceSession(str(path.resolve()), sess_options=opts, providers=provider_options(chosen, path, precision))
     except Exception as exc:  # onnxruntime raises its own exception types for corrupt or unsupported files
+        # a model whose weights are in a data file beside it (`rig model export --shared-data`),
+        # copied without it: ONNX Runtime names the file it looked for
+        missing = re.search(r'External data path does not exist: "([^"]+)"', str(exc))
+        if missing:
+            raise InferenceError(f"{path}: its weights file {Path(missing.group(1)).name} is not beside it; copy the "
+                                 f"model's files together (M.onnx, its parts and M.onnx.*.data)") from None
         raise InferenceError(f"{path}: ONNX Runtime cannot load it ({str(exc).splitlines()[0]})") from None
 
 

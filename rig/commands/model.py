@@ -35,6 +35,9 @@ def register(subparsers) -> None:
                         "(default paper; with --checkpoint the checkpoint's own, no weight depends on the sizes)")
     e.add_argument("--fp16", action="store_true", help="also write MODEL.fp16.onnx (learned layers in float16, for GPUs)")
     e.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or later (default 18)")
+    e.add_argument("--shared-data", action="store_true",
+                   help="keep the weights of the model and its parts once, in one data file beside it (MODEL.onnx.<digest>.data), "
+                        "about a quarter of the bytes; copy the files together (the shipped models are stored so)")
     e.add_argument("-o", "--output", required=True, metavar="model.onnx",
                    help="ONNX file to write; an earlier .onnx export there is replaced (atomically: a failed export leaves it as it was)")
     e.add_argument("--json", action="store_true", help="print one JSON object with the files written")
@@ -186,7 +189,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         weights = None
         trained = False
     status.update(f"exporting {args.output} ...", force=True)
-    result = export_onnx(model, args.output, fp16=args.fp16, weights=weights, opset=args.opset)
+    result = export_onnx(model, args.output, fp16=args.fp16, weights=weights, opset=args.opset, shared_data=args.shared_data)
     status.done()
     files = [str(result.path)] + ([str(result.fp16_path)] if result.fp16_path else [])
     parts = [str(p) for p in result.parts]  # stage 1 and the view of each, for the live path
@@ -426,30 +429,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     sequences = expand_sequences(args.sequence)
 
     from inference.device import describe, resolve_device
+    from inference.evaluate.load import model_to_evaluate
     from inference.evaluate.model_eval import depth_lines, evaluate, spread_lines, take_lines, vanished_lines
 
     device = resolve_device(args.device)  # --device cuda without a GPU: one line, exit 2
-    from inference.model.checkpoint import build_with_weights, load_checkpoint, model_from_record
-
-    if model_path is None:
-        from inference.config import ModelConfig, Sizes
-
-        model, _ = build_with_weights(ModelConfig.for_backbone("mast3r", Sizes.preset(args.size)), args.weights)
-        model_path = Path(args.weights)
-    elif model_path.suffix == ".onnx":
-        from inference.config import ModelConfig
-        from inference.runtime.metadata import read_file_metadata
-
-        meta = read_file_metadata(model_path)
-        model = model_from_record(ModelConfig.from_json(meta["splat_sap.config"], saved=True), meta["splat_sap.weights"], weights=args.weights)
-    else:
-        if args.weights is not None:
-            raise ConfigError("--weights: a checkpoint holds its backbone's weights already; give one of them")
-        model = load_checkpoint(model_path)
+    model = model_to_evaluate(model_path, weights=args.weights, size=args.size)
     if model.cfg.backbone.kind == "mast3r":
         _licence_note(f"{model_path} runs MASt3R weights" if args.model else f"loaded {args.weights}")
-    if model.needs_depth:
-        raise ConfigError(f"{model_path}: an oracle model reads ground-truth depth; evaluate a trained model")
+    if model_path is None:
+        model_path = Path(args.weights)
     data = TrainingSet(sequences)
     from rig.progress import ProgressBar
 
@@ -457,7 +445,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         result = evaluate(model, data, every=args.every, max_sets=args.max_sets, references=not args.no_references,
                           progress=None if args.json else bar.update, device=device)
     result["model"] = str(model_path)
-    result["sequences"] = [str(s.root) for s in data.sequences]
+    result["sequences"] = data.roots
     result["device"] = describe(device)
     if args.json:
         emit_json(result)

@@ -6,6 +6,7 @@ no test here exports another."""
 from __future__ import annotations
 
 import os
+import shutil
 
 import numpy as np
 import onnx
@@ -152,8 +153,21 @@ def test_a_missing_or_foreign_part_is_one_line_error(tiny_onnx, oracle_onnx, tmp
         SplitPipeline(folder("none", {"m.onnx": tiny}))
     # The whole file is not needed: the parts are what runs.
     SplitPipeline(folder("parts_only", {"m.stage1.onnx": part_path(tiny, "stage1"), "m.view.onnx": part_path(tiny, "view")}))
+    oracle_view = part_path(oracle_onnx.path, "view")  # its weights are in a data file beside it (--shared-data)
+    data = {p.name: p for p in oracle_onnx.path.parent.glob("*.data")}
+    assert data
     with pytest.raises(InferenceError, match="different exports.*re-export"):
-        SplitPipeline(folder("mixed", {"m.stage1.onnx": part_path(tiny, "stage1"), "m.view.onnx": part_path(oracle_onnx.path, "view")}))
+        SplitPipeline(folder("mixed", {"m.stage1.onnx": part_path(tiny, "stage1"), "m.view.onnx": oracle_view, **data}))
+    # a link to a part reads the data file beside the part itself
+    SplitPipeline(folder("linked", {"m.stage1.onnx": part_path(oracle_onnx.path, "stage1"), "m.view.onnx": oracle_view}), providers=CPU)
+    # a part copied without the data file it reads: one line naming the file
+    copied = tmp_path / "no_data"
+    copied.mkdir()
+    for part in ("stage1", "view"):
+        shutil.copyfile(part_path(oracle_onnx.path, part), copied / f"m.{part}.onnx")
+    with pytest.raises(InferenceError) as err:
+        SplitPipeline(copied / "m.onnx", providers=CPU)
+    assert "\n" not in str(err.value) and f"its weights file {next(iter(data))} is not beside it" in str(err.value)
     with pytest.raises(InferenceError, match="not the view part.*re-export"):
         SplitPipeline(folder("swapped", {"m.stage1.onnx": part_path(tiny, "stage1"), "m.view.onnx": part_path(tiny, "stage1")}))
     # a part given where a whole model is wanted (`rig model check|render`): one line naming the model
