@@ -39,7 +39,6 @@ from inference.model.pipeline import SplatSAP, build_model
 from inference.train.data import FrameSource, Preprocessor
 from inference.train.depth_figures import stage1_absrel, stage1_scale_split
 from inference.train.losses import ssim_map
-from inference.train.stages import stage1_forward
 
 STAGE2_PARTS = ("depth_init.", "depth_refine.", "colour_init.", "gaussian_plane.", "splatting.")
 VANISHED_TOLERANCE = 0.30  # |rendered depth / truth - 1| beyond which a person's pixel counts as gone
@@ -202,7 +201,8 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         fs = source.frame_set(index, with_truth=True)
         L = pre.views(fs, [source.left], sizes.fine).to(device)
         R = pre.views(fs, [source.right], sizes.fine).to(device)
-        *_, affine = stage1_forward(model, L, R)
+        # stage 1 once per set: it does not depend on the target (the views below reuse it)
+        _, affine, stage1 = model.run_stage1(L.images, R.images, L.K, R.K, L.poses, R.poses)
         seq, _, set_no = fs.key.rpartition("#")
         take = seq or "all"
         scales[seq].append((int(set_no) if set_no.isdigit() else index, affine.scale[0].float().cpu().numpy().astype(np.float64)))
@@ -222,6 +222,10 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
             if all(fs.masks.get(c) is not None for c in (source.left, source.right)):
                 masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (source.left, source.right)}
                 absrel_person += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, masks)
+        twin_stage1 = {}
+        if references and have_depth:
+            depth_in = [torch.from_numpy(gt_coarse[c])[None, None].to(device) for c in (source.left, source.right)]
+            twin_stage1 = {name: twin.run_stage1(L.images, R.images, L.K, R.K, L.poses, R.poses, *depth_in)[2] for name, twin in twins.items()}
         for sup in source.supervision:
             T = pre.views(fs, [sup], sizes.output).to(device)
             mask = None
@@ -245,7 +249,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
                         if person_absrel is not None:
                             person_absrel.append(float(err.mean()))
 
-            out = model.run(*args)
+            out = model.run_view(stage1, *args)
             score("model", out, view_absrel_person)
             last = per_take["model"][take].scores.psnr[-1]
             if take not in worst_view or last < worst_view[take]["psnr"]:
@@ -254,10 +258,9 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
                 view_err = view_depth_errors(out["depth"], out["alpha"], gt_view)
                 view_absrel.append(float(view_err.mean()) if view_err.size else float("nan"))
             if references:
-                if have_depth:
-                    depth_in = [torch.from_numpy(gt_coarse[c])[None, None].to(device) for c in (source.left, source.right)]
-                    for name, twin in twins.items():
-                        score(name, twin.run(*args, *depth_in))
+                for name, twin in twins.items():
+                    if name in twin_stage1:
+                        score(name, twin.run_view(twin_stage1[name], *args))
                 nearer = min((source.left, source.right), key=lambda c: np.linalg.norm(fs.cameras[c].center - fs.cameras[sup].center))
                 score("nearest_source", {"image": pre.views(fs, [nearer], sizes.output).images.to(device)})
         if progress is not None:
