@@ -181,72 +181,28 @@ def cmd_train(args: argparse.Namespace) -> int:
     if cfg.supervised:
         from inference.train.depth_supervision import truth_missing
 
-        for seq in data.sequences:
-            if not seq.has_ground_truth():
-                raise ConfigError(truth_missing(str(seq.root)))
+        missing = data.without_ground_truth()
+        if missing:
+            raise ConfigError(truth_missing(missing[0]))
     if args.nproc > 1 and "WORLD_SIZE" not in os.environ:
         return _relaunch(args)
 
-    import torch
-    import torch.distributed as dist
+    from inference.train.run import RunOptions, rank, train
 
-    from inference.device import describe as describe_device, resolve_device
-    from inference.train.trainer import DEFAULT_CACHE_MB, Trainer
-
-    device = resolve_device(args.device)  # --device cuda without a GPU: one line, exit 2
-    if args.precision == "bf16" and device.type == "cpu" and not _cpu_bf16():
-        raise ConfigError("--precision bf16: this CPU has no bfloat16 arithmetic torch can use; give --precision fp32")
-    workers = args.workers if args.workers is not None else (min(4, max(0, (os.cpu_count() or 1) - 1)) if device.type == "cuda" else 0)
-
-    weights_record = None
-    if args.weights is not None:
-        from inference.model.checkpoint import backbone_weights_record, configure_for_weights
-        from inference.model.mast3r_weights import LICENCE, read_weights
-
-        # The depths the weights' file records (the full checkpoint: 24 + 12 blocks).
-        cfg.model = configure_for_weights(cfg.model, read_weights(args.weights))
-        weights_record = backbone_weights_record(args.weights)
-        if int(os.environ.get("RANK", "0")) == 0:
-            print(f"note: loading {args.weights}: {LICENCE}", file=sys.stderr)
-    elif cfg.model.backbone.kind == "mast3r" and int(os.environ.get("RANK", "0")) == 0:
-        from inference.model.mast3r_weights import LICENCE
-
-        print(f"note: the checkpoint holds MASt3R weights: {LICENCE}", file=sys.stderr)
-
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    torch.set_num_threads(args.threads or max(1, (os.cpu_count() or 1) // max(1, int(os.environ.get("LOCAL_WORLD_SIZE", world)))))
-    if world > 1:
-        backend = "nccl" if device.type == "cuda" else "gloo"
-        dist.init_process_group(backend)
+    opts = RunOptions(resume=args.resume, init=args.init, weights=args.weights, device=args.device, precision=args.precision,
+                      workers=args.workers, cache_mb=args.cache_mb, threads=args.threads, stop_after=args.stop_after,
+                      max_minutes=args.max_minutes, checkpoint_minutes=args.checkpoint_minutes)
     bar = None
+    if rank() == 0 and not args.json:
+        from rig.progress import ProgressBar
+
+        bar = ProgressBar("training")
     try:
-        if rank == 0 and not args.json:
-            from rig.progress import ProgressBar
-
-            bar = ProgressBar("training")
-
-        def progress(step: int, total: int, metrics: dict) -> None:
-            if bar is not None:
-                bar.update(step, total)
-
-        describe = {"sequences": [str(s.root) for s in data.sequences], "frame_sets": len(data),
-                    "sources": [data.left, data.right], "supervision": data.supervision, "processes": world}
-        if args.init is not None:
-            describe["init"] = str(args.init)
-        if weights_record is not None:
-            describe["backbone_weights"] = weights_record
-        trainer = Trainer(cfg, data, out, resume=args.resume, progress=progress, describe=describe, init=args.init,
-                          backbone_weights=args.weights, device=device, precision=args.precision, workers=workers,
-                          cache_mb=DEFAULT_CACHE_MB if args.cache_mb is None else args.cache_mb)
-        summary = trainer.run(stop_after=args.stop_after, max_minutes=args.max_minutes, checkpoint_minutes=args.checkpoint_minutes)
-        summary["device"] = describe_device(trainer.device)
+        summary = train(cfg, data, out, opts, progress=None if bar is None else lambda step, total, metrics: bar.update(step, total))
     finally:
         if bar is not None:
             bar.close()
-        if world > 1 and dist.is_initialized():
-            dist.destroy_process_group()
-    if rank == 0:
+    if rank() == 0:
         if args.json:
             emit_json(summary)
         else:
@@ -260,13 +216,3 @@ def cmd_train(args: argparse.Namespace) -> int:
                 print(f"next: rig model export --checkpoint {out / 'model.pt'} -o model.onnx")
     return 0
 
-
-def _cpu_bf16() -> bool:
-    """Whether autocast can run bfloat16 matrix products on this CPU (one tiny product, once)."""
-    import torch
-
-    try:
-        with torch.autocast("cpu", dtype=torch.bfloat16):
-            return (torch.ones(2, 2) @ torch.ones(2, 2)).dtype == torch.bfloat16
-    except RuntimeError:
-        return False

@@ -177,6 +177,15 @@ class TrainingSet:
             self.positions += [(k, p) for p in seq.complete_sets(names)]
         self.names = names
 
+    @property
+    def roots(self) -> list[str]:
+        """Each take's folder."""
+        return [str(s.root) for s in self.sequences]
+
+    def without_ground_truth(self) -> list[str]:
+        """The folders of the takes that hold no ground truth (the supervised recipe needs it)."""
+        return [str(s.root) for s in self.sequences if not s.has_ground_truth()]
+
     def __len__(self) -> int:
         return len(self.positions)
 

@@ -1,0 +1,106 @@
+"""One process of a training run (`rig train`): the device and its checks, torch's threads, the
+data-parallel group when torchrun started several processes, the MASt3R weights' record, then the
+Trainer. The data is any training set with the TrainingSet interface (rig.storage.dataset).
+"""
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional
+
+from inference.errors import InferenceError
+
+
+def rank() -> int:
+    """This process's rank in the torchrun group (0 alone): rank 0 writes and reports."""
+    return int(os.environ.get("RANK", "0"))
+
+
+def world_size() -> int:
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
+@dataclass
+class RunOptions:
+    """How to run, as `rig train`'s options give it (None: the default)."""
+
+    resume: bool = False
+    init: Optional[Path] = None  # a checkpoint whose weights a new run starts from
+    weights: Optional[Path] = None  # the MASt3R checkpoint a new run's backbone loads
+    device: Optional[str] = None  # cpu | cuda[:N]; default CUDA when torch sees a GPU
+    precision: str = "fp32"
+    workers: Optional[int] = None  # DataLoader processes; default 0 on the CPU, up to 4 on CUDA
+    cache_mb: Optional[float] = None
+    threads: Optional[int] = None  # torch threads per process; default the cores shared among this machine's processes
+    stop_after: Optional[int] = None
+    max_minutes: Optional[float] = None
+    checkpoint_minutes: Optional[float] = None
+
+
+def _cpu_bf16() -> bool:
+    """Whether autocast can run bfloat16 matrix products on this CPU (one tiny product, once)."""
+    import torch
+
+    try:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return (torch.ones(2, 2) @ torch.ones(2, 2)).dtype == torch.bfloat16
+    except RuntimeError:
+        return False
+
+
+def _backbone_weights(cfg, weights: Optional[Path]) -> Optional[dict]:
+    """With MASt3R weights: the model configured for their depths and their record; the licence note
+    (rank 0) either way a MASt3R backbone is trained."""
+    if weights is not None:
+        from inference.model.checkpoint import backbone_weights_record, configure_for_weights
+        from inference.model.mast3r_weights import LICENCE, read_weights
+
+        # The depths the weights' file records (the full checkpoint: 24 + 12 blocks).
+        cfg.model = configure_for_weights(cfg.model, read_weights(weights))
+        if rank() == 0:
+            print(f"note: loading {weights}: {LICENCE}", file=sys.stderr)
+        return backbone_weights_record(weights)
+    if cfg.model.backbone.kind == "mast3r" and rank() == 0:
+        from inference.model.mast3r_weights import LICENCE
+
+        print(f"note: the checkpoint holds MASt3R weights: {LICENCE}", file=sys.stderr)
+    return None
+
+
+def train(cfg, data, out: Path, opts: RunOptions, progress: Optional[Callable[[int, int, dict], None]] = None) -> dict:
+    """Train `cfg` on `data` into `out` (this process's share under torchrun); the trainer's summary
+    with the device it ran on."""
+    import torch
+    import torch.distributed as dist
+
+    from inference.device import describe as describe_device, resolve_device
+    from inference.train.trainer import DEFAULT_CACHE_MB, Trainer
+
+    device = resolve_device(opts.device)  # --device cuda without a GPU: one line, exit 2
+    if opts.precision == "bf16" and device.type == "cpu" and not _cpu_bf16():
+        raise InferenceError("--precision bf16: this CPU has no bfloat16 arithmetic torch can use; give --precision fp32")
+    workers = opts.workers if opts.workers is not None else (min(4, max(0, (os.cpu_count() or 1) - 1)) if device.type == "cuda" else 0)
+    weights_record = _backbone_weights(cfg, opts.weights)
+
+    world = world_size()
+    torch.set_num_threads(opts.threads or max(1, (os.cpu_count() or 1) // max(1, int(os.environ.get("LOCAL_WORLD_SIZE", world)))))
+    if world > 1:
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    try:
+        describe = {"sequences": data.roots, "frame_sets": len(data), "sources": [data.left, data.right],
+                    "supervision": data.supervision, "processes": world}
+        if opts.init is not None:
+            describe["init"] = str(opts.init)
+        if weights_record is not None:
+            describe["backbone_weights"] = weights_record
+        trainer = Trainer(cfg, data, out, resume=opts.resume, progress=progress, describe=describe, init=opts.init,
+                          backbone_weights=opts.weights, device=device, precision=opts.precision, workers=workers,
+                          cache_mb=DEFAULT_CACHE_MB if opts.cache_mb is None else opts.cache_mb)
+        summary = trainer.run(stop_after=opts.stop_after, max_minutes=opts.max_minutes, checkpoint_minutes=opts.checkpoint_minutes)
+        summary["device"] = describe_device(trainer.device)
+    finally:
+        if world > 1 and dist.is_initialized():
+            dist.destroy_process_group()
+    return summary
