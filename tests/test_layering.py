@@ -2,8 +2,8 @@
 
 - `common` at the bottom; `calibration` and `sync` above it and independent of each other;
   `simulator` above them; `inference` above that; `rig` on top.
-- `rig` reaches the simulator only through the `sim://` backend (`rig/cameras/sim.py`) and the
-  simulator's own commands (`rig demo`, `rig sim`).
+- `rig` reaches the simulator only through its simulated devices and `rig/sim/` (SIMULATOR_GATES),
+  the demo's own package (`rig/demo/`) and the simulator's own commands (`rig demo`, `rig sim`).
 - The live path (camera backends, capture, storage, live server, config, inference.runtime) never
   imports torch or the export tool chain, directly or through anything it imports; the one exception
   is `rig live --device cuda`, whose torch GPU runtime (inference.gpu_runtime) rig.live.app imports
@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("common", "calibration", "sync", "simulator", "inference", "rig")
 LAYER = {"common": 0, "calibration": 1, "sync": 1, "simulator": 2, "inference": 3, "rig": 4}
 SIMULATOR_GATES = ("rig.sim", "rig.cameras.sim", "rig.boards.sim", "rig.truth.simulator",
-                   "rig.commands.demo", "rig.commands._demo_gopro", "rig.commands.sim")
+                   "rig.demo", "rig.commands.demo", "rig.commands.sim")
 LIVE_PATH = ("rig.cameras", "rig.capture", "rig.storage", "rig.live", "rig.config", "rig.errors", "inference.runtime")
 HEAVY = ("torch", "torchvision", "onnx", "onnxscript")  # training and export only
 # rig's sub-packages and top-level modules, bottom to top. The config asks the camera backends what
@@ -46,6 +46,7 @@ RIG_LAYERS = (
     ("rig.capture",),
     ("rig.live",),
     ("rig.render",),  # a recorded take through the model, outside the live loop
+    ("rig.demo",),  # what rig demo builds around the ordinary steps
     ("rig.doctor",),
     ("rig.commands",),
     ("rig.cli",),

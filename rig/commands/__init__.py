@@ -1,8 +1,9 @@
 """Subcommand groups of the `rig` CLI: one module per group, each with `register(subparsers)`.
 
 `build_parser()` finds the groups by module name (adding a group is adding a module); `dispatch()`
-parses a command line and runs it. `rig.cli.main` wraps `dispatch` with the one-line error rule;
-`rig demo` calls `dispatch` directly to run its steps.
+parses a command line and runs it. `rig.cli.main` wraps `dispatch` with the one-line error rule.
+A command parses its arguments, checks them, calls the function of its step (in the package of the
+step: rig.capture, rig.storage, rig.render, inference, calibration) and prints what it gives.
 """
 from __future__ import annotations
 

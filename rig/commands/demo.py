@@ -16,9 +16,6 @@ output folder and the free disk space are checked before any of it starts.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
-import json
 import math
 from pathlib import Path
 
@@ -52,20 +49,6 @@ def register(sub) -> None:
                         "GoPro API filming the scene: record, align the GoPros to the trigger pulses by the board's LED, "
                         "validate, and compare the alignment with the simulator's truth")
     p.set_defaults(func=cmd_demo)
-
-
-def _run(argv: list[str]) -> dict:
-    """Run one `rig` command in this process, echoing it; returns its --json output."""
-    from rig.commands import dispatch
-    from rig.errors import RigError
-
-    print(f"$ rig {' '.join(argv)}", flush=True)
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        rc = dispatch(argv + ["--json"])
-    if rc != 0:
-        raise RigError(f"demo step `rig {' '.join(argv)}` failed (exit {rc})")
-    return json.loads(buf.getvalue())
 
 
 def _check_arguments(args: argparse.Namespace) -> None:
@@ -108,12 +91,13 @@ def disk_estimate(args: argparse.Namespace, calibration_views: int) -> dict[str,
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from rig.commands._demo_disk import check_space, mb, written
+    from rig.commands import _demo_steps as step
     from calibration.boards import board_from_dict
     from calibration.camera import RigCalibration
     from calibration.compare import describe, errors_against_truth
     from rig.sim.rig_config import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.config import dump_config, parse_config
+    from rig.demo.disk import check_space, mb, written
     from rig.render.novel_views import render_novel_views, render_strip
     from simulator.calibration_session import CalibrationSession
 
@@ -123,7 +107,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.gopro is not None:
         from rig.commands import _demo_gopro
 
-        return _demo_gopro.run(args, _run)
+        return _demo_gopro.run(args)
     data = sim_rig_config(n_cameras=args.cameras, width=args.width, height=args.height, fps=FPS)
     data["sim"].update({"loop_frames": 20})
     cfg = parse_config(data)
@@ -145,11 +129,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     # 2. calibration
     print(f"2/5  calibrating: {session.describe()}")
     views_dir = out / "calibration-views"
-    cap = _run(["calibrate", "capture", "-c", str(rig_file), "--board", str(board_file), "-o", str(views_dir), "--views", str(views)])
+    cap = step.run_command(["calibrate", "capture", "-c", str(rig_file), "--board", str(board_file), "-o", str(views_dir), "--views", str(views)])
     calib_file = out / "calibration.json"
     # The simulated lenses are ordinary (62 degrees across, k3 = 0): k3 is held, as it should be for
     # such lenses; p1 p2 are fitted (the simulator's lenses have them).
-    res = _run(["calibrate", "run", "--images", str(views_dir), "--board", str(board_file), "-o", str(calib_file), "--k3", "hold"])
+    res = step.run_command(["calibrate", "run", "--images", str(views_dir), "--board", str(board_file), "-o", str(calib_file), "--k3", "hold"])
     calib = RigCalibration.load(calib_file)
     errs = errors_against_truth(calib, session.truth)  # both in the calibration's frame (its left camera's)
     print(f"     kept {cap.get('views_kept')} views; RMS {', '.join(f'{k} {v:.2f}' for k, v in res['rms_px'].items())} px; "
@@ -168,12 +152,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     rig_file.write_text(dump_config(parse_config(data)))
     take = out / "take"
     print(f"3/5  recording {args.seconds:g} s of the scene in sync")
-    rec = _run(["record", "-c", str(rig_file), "-o", str(take), "--seconds", str(args.seconds)])
+    rec = step.record(rig_file, take, args.seconds)
     print(f"     {rec['sets']} sets ({rec['complete_sets']} complete), frames lost {sum(rec['frames_lost'].values())}, "
           f"{rec['mb_per_s']:.1f} MB/s")
 
     # 4. validation
-    val = _run(["record", "validate", str(take)])
+    val = step.validate(take)
     print(f"4/5  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
           f"skew p99 {val['skew_us'].get('p99', 0):.0f} us, calibrated: {val['calibrated']}")
     novel = out / "novel-views"
@@ -197,8 +181,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             print(f"     orbit and strip: skipped: {exc}")
             strip = None
     if not nv.get("no_model") and strip is not None:
-        orbit = _run(["model", "render", "--sequence", str(take), "--orbit", "--frames", str(min(ORBIT_FRAMES, rec["sets"])),
-                      "-o", str(out / "orbit.mp4")])
+        orbit = step.orbit(take, min(ORBIT_FRAMES, rec["sets"]), out / "orbit.mp4")
         print(f"     orbit video, left to right over the take: {orbit['output']} ({orbit['frames']} frames, {orbit['codec']}); "
               f"strip (left | t = 0.25, 0.5, 0.75 | right): {strip['file']}")
     print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")

@@ -89,10 +89,15 @@ def _validate(args) -> int:
         if len(v.errors) > 20:
             print(f"  ... and {len(v.errors) - 20} more errors")
     if not v.readable:
-        print(f"rig: error: {v.root}: {len(v.errors)} problem{'s' if len(v.errors) > 1 else ''} (first: {v.errors[0]}); "
-              f"`rig record repair` keeps every good set", file=sys.stderr)
+        print(f"rig: error: {unreadable(v)}", file=sys.stderr)
         return 1
     return 0
+
+
+def unreadable(v) -> str:
+    """What a take that does not validate (rig.storage.validate) is told."""
+    return (f"{v.root}: {len(v.errors)} problem{'s' if len(v.errors) > 1 else ''} (first: {v.errors[0]}); "
+            "`rig record repair` keeps every good set")
 
 
 def _repair(args) -> int:
@@ -169,12 +174,21 @@ def _align(args) -> int:
         if r["backup"]:
             print(f"the original index is kept as {r['backup']}")
         print(f"the report is {Path(r['path']) / 'alignment.json'}")
-    failed = [(n, c["problem"]) for n, c in r["cameras"].items() if c["problem"]]
-    failed += [(v["file"] or v["camera"], v["problem"]) for v in r["videos"] if v["problem"]]
+    failed = not_aligned(r, args.dir)
     if failed:
-        print(f"rig: error: {args.dir}: could not align {', '.join(n for n, _ in failed)}: {failed[0][1]}", file=sys.stderr)
+        print(f"rig: error: {failed}", file=sys.stderr)
         return 1
     return 0
+
+
+def not_aligned(r: dict, root) -> str | None:
+    """What an alignment report (rig.storage.align.align) that left a camera or video unaligned is
+    told; None when everything was aligned."""
+    failed = [(n, c["problem"]) for n, c in r["cameras"].items() if c["problem"]]
+    failed += [(v["file"] or v["camera"], v["problem"]) for v in r["videos"] if v["problem"]]
+    if not failed:
+        return None
+    return f"{root}: could not align {', '.join(n for n, _ in failed)}: {failed[0][1]}"
 
 
 def _fetch(args) -> int:
@@ -239,8 +253,8 @@ def _record(args) -> int:
               f"{rates}frames lost {sum(result.frames_lost.values())}")
         if d["compression_ratio"] and d["codec"] != "raw":
             print(f"  {d['codec']}: {d['compression_ratio']:.2f} times smaller than raw, {d['encode_ms_per_frame']} ms of CPU per frame")
-        for n in result.frames:
-            print(f"  {n}: {result.frames[n]} frames, {result.drops.get(n, 0)} dropped by the camera link")
+        for n, count in result.frames.items():  # per camera
+            print(f"  {n}: {count} frames, {result.drops.get(n, 0)} dropped by the camera link")
         for n, c in ((result.media or {}).get("cameras") or {}).items():
             done = [f for f in c["files"] or [] if f["state"] == "done"]
             print(f"  {n}: recorded to its card; {len(done)} of {len(c['files'] or [])} videos downloaded into "
