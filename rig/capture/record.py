@@ -133,20 +133,10 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     (an earlier take's `compression_ratio`); unknown, compression counts for nothing."""
     from rig.capture.session import RigSession
 
-    if seconds is None and sets is None:
-        raise ConfigError("record: give --seconds S or --sets N")
-    if (seconds is not None and seconds <= 0) or (sets is not None and sets <= 0):
-        raise ConfigError("record: --seconds and --sets must be positive")
-    calibration = None
-    if cfg.calibration:
-        calibration = cfg.resolve(cfg.calibration)
-        if not calibration.is_file():
-            raise ConfigError(f"rig.calibration: {calibration} does not exist (calibrate with `rig calibrate run`, or remove the key)")
+    calibration = _check_take(cfg, seconds, sets, compress_ratio)
     live = live_cameras(cfg.cameras, TAKE_NEEDS_LIVE)  # the cameras of the sets
     cards = [c.name for c in cfg.cameras if c not in live]
     rate = cfg.trigger.rate_hz if cfg.trigger else max(c.fps for c in live)
-    if compress_ratio is not None and not compress_ratio >= 1.0:
-        raise ConfigError(f"record: --compress-ratio must be at least 1, got {compress_ratio:g}")
     data_rate, disk = rig_data_rate(cfg, live), None
     if disk_check:
         # half a second, said nowhere: a refusal must stay the one line on stderr; before the cameras open: a take the disk cannot hold is refused up front, not cut short
@@ -155,17 +145,12 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                             calibration_file=calibration, extra=take_truth(cfg), codec=codec)
     result = RecordResult(Path(out), codec=codec, data_mb_per_s=round(data_rate / 1e6, 1),
                           disk_mb_per_s=round(disk.bytes_per_s / 1e6, 1) if disk is not None else None)
-    cpu0 = time.process_time()
-    t0 = time.monotonic()
-    t_first: Optional[float] = None
+    clock = _TakeClock()
     session = None
-    flasher = None
+    flashes = None
     shutters = None
     if flash is None:
         flash = cfg.trigger is not None and any(c.trigger == "free" for c in cfg.cameras)
-    rate_hz = rate
-    flash_times = []
-    waiting_for: set = set()
     try:
         # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
         session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S, on_phase=notes)
@@ -173,50 +158,17 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
             # A board rig records a train of exactly N pulses; otherwise the session is stopped when
             # enough is recorded, and every set still in flight is written before the end.
             session.start(pulses=sets if (sets is not None and session.board is not None) else 0)
-            if session.card_cameras:
-                # pressed once the pulses run, before the first set is written: the take's first flash
-                # comes after that (sets wait in the session's queue meanwhile)
-                shutters = CardShutters(session.card_cameras, Path(out))
-                if notes is not None:
-                    notes(f"pressing the shutters of {', '.join(session.card_cameras)} (recording to their cards)")
-                shutters.press()
+            shutters = _press_shutters(session, Path(out), notes)
             try:
                 if flash and session.board is not None:
-                    flasher = _Flasher(session, Path(out))
-                    length = seconds if seconds is not None else sets / rate_hz
-                    # the first flash once every free-running camera delivers (a GoPro's stream takes a while
-                    # to start), the second near the end
-                    waiting_for = {c.name for c in live if c.trigger == "free"}
-                    flash_times = [FLASH_AT_S] + ([length - FLASH_AT_S - FLASH_MS / 1000] if length >= 4 * FLASH_AT_S else [])
-                for fs in session.framesets(until=lambda: seconds is not None and t_first is not None and time.monotonic() - t_first >= seconds):
-                    if _behind(fs, result, notes):
-                        continue
-                    if not writer.write(fs):
-                        result.stopped_by = "storage"
-                        session.stop()
-                        break
-                    result.sets += 1
-                    if t_first is None:
-                        t_first = time.monotonic()  # the take starts with its first set, after the clock warm-up
-                        cpu0 = time.process_time()
-                    elapsed = time.monotonic() - t_first
-                    if flasher is not None and waiting_for:
-                        waiting_for -= {n for n, f in fs.frames.items() if f is not None}
-                        if not waiting_for:  # every free-running camera delivers: the first flash is due
-                            first = elapsed + FLASH_AT_S
-                            flash_times = [first] + [t for t in flash_times[1:] if t > first + 1.0]
-                    while flasher is not None and not waiting_for and flash_times and elapsed >= flash_times[0]:
-                        flash_times.pop(0)
-                        flasher.fire()
-                    if status is not None:
-                        status.update(_status_text(result, writer, session, elapsed, out))
-                    done = (sets is not None and result.sets >= sets) or (seconds is not None and elapsed >= seconds)
-                    if done or session.train_done.is_set():
-                        session.stop()  # flushes the last sets; the loop writes them and ends
+                    flashes = _Flashes(_Flasher(session, Path(out)), {c.name for c in live if c.trigger == "free"},
+                                       seconds if seconds is not None else sets / rate)
+                _write_sets(session, writer, result, clock, seconds=seconds, sets=sets, flashes=flashes, status=status,
+                            notes=notes, out=out)
                 session_stats = session.camera_stats()
                 result.errors.extend(session.errors())
-                if flasher is not None:
-                    flasher.join()
+                if flashes is not None:
+                    flashes.flasher.join()
             finally:
                 if shutters is not None:
                     shutters.release()  # also when the take is interrupted: the cameras stop recording
@@ -224,12 +176,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
         result.stopped_by = "interrupt"
         session_stats = {}
         if session is not None:
-            # Leaving the `with` block stopped the session, which grouped the frames still in flight
-            # into its last sets: write them too, so an interrupted take loses no delivered frame.
-            while writer.error is None and (fs := session.next_set(timeout=0)) is not None:
-                if not _behind(fs, result, notes):
-                    writer.write(fs)
-            session_stats = session.camera_stats()
+            session_stats = _write_in_flight(session, writer, result, notes)
     finally:
         writer.close()  # (leaving the session released any shutter still pressed)
     if shutters is not None:
@@ -239,9 +186,115 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     elif cards:
         result.errors.append(f"{', '.join(cards)}: their videos were not downloaded (the take was interrupted); "
                              f"`rig record fetch {out}` brings them into the take")
-    result.flashes = len(flasher.fired) if flasher is not None else 0
-    result.seconds = time.monotonic() - (t_first if t_first is not None else t0)
-    result.cpu_s = time.process_time() - cpu0
+    result.flashes = len(flashes.flasher.fired) if flashes is not None else 0
+    _tally(result, writer, clock, session_stats)
+    return result
+
+
+def _check_take(cfg: RigConfig, seconds: Optional[float], sets: Optional[int], compress_ratio: Optional[float]) -> Optional[Path]:
+    """The take's length and options, and the calibration file it copies (None: none)."""
+    if seconds is None and sets is None:
+        raise ConfigError("record: give --seconds S or --sets N")
+    if (seconds is not None and seconds <= 0) or (sets is not None and sets <= 0):
+        raise ConfigError("record: --seconds and --sets must be positive")
+    calibration = None
+    if cfg.calibration:
+        calibration = cfg.resolve(cfg.calibration)
+        if not calibration.is_file():
+            raise ConfigError(f"rig.calibration: {calibration} does not exist (calibrate with `rig calibrate run`, or remove the key)")
+    if compress_ratio is not None and not compress_ratio >= 1.0:
+        raise ConfigError(f"record: --compress-ratio must be at least 1, got {compress_ratio:g}")
+    return calibration
+
+
+def _press_shutters(session, out: Path, notes: Optional[Callable[[str], None]]) -> Optional[CardShutters]:
+    """The card cameras' shutters, pressed once the pulses run, before the first set is written:
+    the take's first flash comes after that (sets wait in the session's queue meanwhile)."""
+    if not session.card_cameras:
+        return None
+    shutters = CardShutters(session.card_cameras, out)
+    if notes is not None:
+        notes(f"pressing the shutters of {', '.join(session.card_cameras)} (recording to their cards)")
+    shutters.press()
+    return shutters
+
+
+class _TakeClock:
+    """The take's time and CPU: both run from its first set, after the clock warm-up (from the call
+    when no set came)."""
+
+    def __init__(self) -> None:
+        self.t0 = time.monotonic()
+        self.cpu0 = time.process_time()
+        self.t_first: Optional[float] = None
+
+    def first_set(self) -> None:
+        self.t_first = time.monotonic()
+        self.cpu0 = time.process_time()
+
+    def elapsed(self) -> float:
+        return time.monotonic() - (self.t_first if self.t_first is not None else self.t0)
+
+
+class _Flashes:
+    """When the take's LED flashes fire: the first FLASH_AT_S after every free-running camera
+    delivers (a GoPro's stream takes a while to start), the second near the end of the take."""
+
+    def __init__(self, flasher: _Flasher, free_cameras: set[str], length_s: float):
+        self.flasher = flasher
+        self.waiting_for = set(free_cameras)
+        self.times = [FLASH_AT_S] + ([length_s - FLASH_AT_S - FLASH_MS / 1000] if length_s >= 4 * FLASH_AT_S else [])
+
+    def after_set(self, fs, elapsed: float) -> None:
+        if self.waiting_for:
+            self.waiting_for -= {n for n, f in fs.frames.items() if f is not None}
+            if not self.waiting_for:  # every free-running camera delivers: the first flash is due
+                first = elapsed + FLASH_AT_S
+                self.times = [first] + [t for t in self.times[1:] if t > first + 1.0]
+        while not self.waiting_for and self.times and elapsed >= self.times[0]:
+            self.times.pop(0)
+            self.flasher.fire()
+
+
+def _write_sets(session, writer: SequenceWriter, result: RecordResult, clock: _TakeClock, *, seconds: Optional[float],
+                sets: Optional[int], flashes: Optional[_Flashes], status: Optional[StatusLine],
+                notes: Optional[Callable[[str], None]], out: Path) -> None:
+    """Write the session's sets until the take has its length, the board's train ended or the
+    storage failed; then the sets still in flight."""
+    for fs in session.framesets(until=lambda: seconds is not None and clock.t_first is not None and clock.elapsed() >= seconds):
+        if _behind(fs, result, notes):
+            continue
+        if not writer.write(fs):
+            result.stopped_by = "storage"
+            session.stop()
+            break
+        result.sets += 1
+        if clock.t_first is None:
+            clock.first_set()
+        elapsed = clock.elapsed()
+        if flashes is not None:
+            flashes.after_set(fs, elapsed)
+        if status is not None:
+            status.update(_status_text(result, writer, session, elapsed, out))
+        done = (sets is not None and result.sets >= sets) or (seconds is not None and elapsed >= seconds)
+        if done or session.train_done.is_set():
+            session.stop()  # flushes the last sets; the loop writes them and ends
+
+
+def _write_in_flight(session, writer: SequenceWriter, result: RecordResult, notes: Optional[Callable[[str], None]]) -> dict:
+    """After an interruption: leaving the `with` block stopped the session, which grouped the frames
+    still in flight into its last sets; write them too, so an interrupted take loses no delivered
+    frame. The cameras' statistics."""
+    while writer.error is None and (fs := session.next_set(timeout=0)) is not None:
+        if not _behind(fs, result, notes):
+            writer.write(fs)
+    return session.camera_stats()
+
+
+def _tally(result: RecordResult, writer: SequenceWriter, clock: _TakeClock, session_stats: dict) -> None:
+    """What the take wrote, how long it took and what the cameras delivered, into `result`."""
+    result.seconds = clock.elapsed()
+    result.cpu_s = time.process_time() - clock.cpu0
     result.sets = writer.sets_written
     result.complete_sets = writer.complete_sets
     result.frames = dict(writer.frames_written)
@@ -257,7 +310,6 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     if writer.error is not None:
         result.errors.append(str(writer.error))
         result.stopped_by = "storage"
-    return result
 
 
 def _behind(fs, result: RecordResult, notes: Optional[Callable[[str], None]]) -> bool:
