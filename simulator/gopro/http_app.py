@@ -115,9 +115,20 @@ class _MediaBody(Response):
 
 def create_app(camera: "GoProEmulator") -> FastAPI:
     app = FastAPI(title=f"GoPro emulator {camera.serial}", docs_url=None, redoc_url=None, openapi_url=None)
-    ok = lambda: JSONResponse({})  # noqa: E731 - the specification's 200Empty
+    _query_and_control(app, camera)
+    _presets_and_settings(app, camera)
+    _shutter(app, camera)
+    _webcam(app, camera)
+    _media(app, camera)
+    return FaultGate(app, camera)
 
-    # --- query and control -------------------------------------------------------------------------
+
+def _ok() -> JSONResponse:
+    return JSONResponse({})  # the specification's 200Empty
+
+
+def _query_and_control(app: FastAPI, camera: "GoProEmulator") -> None:
+    """Version, state, info, keep-alive and who controls the camera."""
     @app.get("/gopro/version")
     def version():
         return {"version": API_VERSION}
@@ -133,38 +144,40 @@ def create_app(camera: "GoProEmulator") -> FastAPI:
     @app.get("/gopro/camera/keep_alive")
     def keep_alive():
         camera.keep_alive()
-        return ok()
+        return _ok()
 
     @app.get("/gopro/camera/control/wired_usb")
     def wired_usb(p: int = Query(...)):
         if p not in (0, 1):
             return JSONResponse({"error": f"p must be 0 or 1, not {p}"}, status_code=400)
         camera.set_wired_control(bool(p))
-        return ok()
+        return _ok()
 
     @app.get("/gopro/camera/control/set_ui_controller")
     def set_ui_controller(p: int = Query(...)):
         if p not in (0, 2):
             return JSONResponse({"error": f"p must be 0 (idle) or 2 (external control), not {p}"}, status_code=400)
         camera.state.camera_control = p
-        return ok()
+        return _ok()
 
     @app.get("/gopro/camera/analytics/set_client_info")
     def set_client_info():
-        return ok()
+        return _ok()
 
-    # --- presets and settings ----------------------------------------------------------------------
+
+def _presets_and_settings(app: FastAPI, camera: "GoProEmulator") -> None:
+    """Presets and settings: read one, load one, set one (a refusal as the specification shapes it)."""
     @app.get("/gopro/camera/presets/get")
     def presets_get(include_hidden: int = Query(0, alias="include-hidden")):
         return camera.state.presets_json()
 
     @app.get("/gopro/camera/presets/load")
     def presets_load(id: int = Query(...)):
-        return ok() if camera.load_preset(id) else JSONResponse({}, status_code=403)
+        return _ok() if camera.load_preset(id) else JSONResponse({}, status_code=403)
 
     @app.get("/gopro/camera/presets/set_group")
     def presets_set_group(id: int = Query(...)):
-        return ok() if camera.load_preset_group(id) else JSONResponse({}, status_code=403)
+        return _ok() if camera.load_preset_group(id) else JSONResponse({}, status_code=403)
 
     @app.get("/gopro/camera/setting")
     def setting(setting: int = Query(...), option: Optional[int] = Query(None)):
@@ -174,9 +187,11 @@ def create_app(camera: "GoProEmulator") -> FastAPI:
                 return JSONResponse({"error": 2, "setting_id": setting, "supported_options": []}, status_code=403)
             return {"option": current}
         refusal = camera.set_setting(setting, option)
-        return ok() if refusal is None else JSONResponse(refusal.to_json(), status_code=403)
+        return _ok() if refusal is None else JSONResponse(refusal.to_json(), status_code=403)
 
-    # --- shutter -----------------------------------------------------------------------------------
+
+def _shutter(app: FastAPI, camera: "GoProEmulator") -> None:
+    """Start and stop recording to the card."""
     @app.get("/gopro/camera/shutter/{mode}")
     def shutter(mode: str):
         if mode == "start":
@@ -185,9 +200,11 @@ def create_app(camera: "GoProEmulator") -> FastAPI:
             camera.shutter_stop()
         else:
             return JSONResponse({"error": f"mode must be start or stop, not {mode!r}"}, status_code=400)
-        return ok()
+        return _ok()
 
-    # --- webcam ------------------------------------------------------------------------------------
+
+def _webcam(app: FastAPI, camera: "GoProEmulator") -> None:
+    """Webcam mode: start, stop, exit, preview, status, version."""
     @app.get("/gopro/webcam/start")
     def webcam_start(request: Request, res: Optional[int] = None, fov: Optional[int] = None,
                      port: Optional[int] = None, protocol: Optional[str] = None):
@@ -215,7 +232,9 @@ def create_app(camera: "GoProEmulator") -> FastAPI:
     def webcam_version():
         return {"version": 5, "max_lens_support": True, "usb_3_1_compatible": True}
 
-    # --- media -------------------------------------------------------------------------------------
+
+def _media(app: FastAPI, camera: "GoProEmulator") -> None:
+    """The card's media: the list, the last capture and downloads (ranges, HEAD, injected cuts, paced)."""
     @app.get("/gopro/media/list")
     def media_list():
         return camera.media.list_json()
@@ -247,8 +266,6 @@ def create_app(camera: "GoProEmulator") -> FastAPI:
         body = Body(path, first, last, cut_after=camera.faults.take_cut(), pace=camera.download_bytes_per_s,
                     hold=camera._link_hold)
         return _MediaBody(body, status, headers)
-
-    return FaultGate(app, camera)
 
 
 # --- the server ------------------------------------------------------------------------------------
