@@ -93,12 +93,9 @@ def disk_estimate(args: argparse.Namespace, calibration_views: int) -> dict[str,
 def cmd_demo(args: argparse.Namespace) -> int:
     from rig.commands import _demo_steps as step
     from calibration.boards import board_from_dict
-    from calibration.camera import RigCalibration
-    from calibration.compare import describe, errors_against_truth
     from rig.sim.rig_config import SIM_RIG_BOARD, board_toml, sim_rig_config
     from rig.config import dump_config, parse_config
     from rig.demo.disk import check_space, mb, written
-    from rig.render.novel_views import render_novel_views, render_strip
     from simulator.calibration_session import CalibrationSession
 
     _check_arguments(args)
@@ -127,10 +124,44 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"calibration views {mb(estimate['calibration_views'])})")
 
     # 2. calibration
+    views_dir, calib_file = out / "calibration-views", out / "calibration.json"
+    _calibrate(args, session, rig_file, board_file, views_dir, calib_file, views)
+
+    # 3. the take, with the calibration
+    data["rig"]["calibration"] = calib_file.name
+    rig_file.write_text(dump_config(parse_config(data)))
+    take = out / "take"
+    print(f"3/5  recording {args.seconds:g} s of the scene in sync")
+    rec = step.record(rig_file, take, args.seconds)
+    print(f"     {rec['sets']} sets ({rec['complete_sets']} complete), frames lost {sum(rec['frames_lost'].values())}, "
+          f"{rec['mb_per_s']:.1f} MB/s")
+
+    # 4. validation
+    val = step.validate(take)
+    print(f"4/5  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
+          f"skew p99 {val['skew_us'].get('p99', 0):.0f} us, calibrated: {val['calibrated']}")
+
+    # 5. novel views
+    _novel_views(take, out, rec["sets"])
+    print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")
+    print(f"disk: {mb(written(out))} written into {out} (take {mb(written(take))}, calibration views {mb(written(views_dir))})")
+    print(f"live: `rig live -c {rig_file}` runs this rig through the model and serves the novel view at "
+          f"http://{cfg.live.host}:{cfg.live.port}/ (Ctrl-C stops it)")
+    print(f"next: `rig record validate {take}`; read it for training with rig.storage.dataset.Sequence('{take}');"
+          f" export the calibration with `rig calibrate export {calib_file} --format colmap -o OUT`")
+    return 0 if val["readable"] else 1
+
+
+def _calibrate(args: argparse.Namespace, session, rig_file: Path, board_file: Path, views_dir: Path, calib_file: Path,
+               views: int) -> None:
+    """Step 2: capture the calibration views, calibrate, and say how far the result is from the
+    simulator's exact cameras."""
+    from rig.commands import _demo_steps as step
+    from calibration.camera import RigCalibration
+    from calibration.compare import describe, errors_against_truth
+
     print(f"2/5  calibrating: {session.describe()}")
-    views_dir = out / "calibration-views"
     cap = step.run_command(["calibrate", "capture", "-c", str(rig_file), "--board", str(board_file), "-o", str(views_dir), "--views", str(views)])
-    calib_file = out / "calibration.json"
     # The simulated lenses are ordinary (62 degrees across, k3 = 0): k3 is held, as it should be for
     # such lenses; p1 p2 are fitted (the simulator's lenses have them).
     res = step.run_command(["calibrate", "run", "--images", str(views_dir), "--board", str(board_file), "-o", str(calib_file), "--k3", "hold"])
@@ -147,22 +178,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"     OUTSIDE the demo's targets: {', '.join(over)}" + ("" if args.cameras == 6 and (args.width, args.height) == (640, 360)
                                                                  else " (the targets are for the default rig: 6 cameras, 640x360)"))
 
-    # 3. the take, with the calibration
-    data["rig"]["calibration"] = calib_file.name
-    rig_file.write_text(dump_config(parse_config(data)))
-    take = out / "take"
-    print(f"3/5  recording {args.seconds:g} s of the scene in sync")
-    rec = step.record(rig_file, take, args.seconds)
-    print(f"     {rec['sets']} sets ({rec['complete_sets']} complete), frames lost {sum(rec['frames_lost'].values())}, "
-          f"{rec['mb_per_s']:.1f} MB/s")
 
-    # 4. validation
-    val = step.validate(take)
-    print(f"4/5  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
-          f"skew p99 {val['skew_us'].get('p99', 0):.0f} us, calibrated: {val['calibrated']}")
-    novel = out / "novel-views"
+def _novel_views(take: Path, out: Path, sets: int) -> None:
+    """Step 5: novel views in place of the supervision cameras beside what they recorded, a strip
+    along the arc and an orbit video, by the shipped model (skipped, said, without one)."""
+    from rig.commands import _demo_steps as step
     from inference.errors import InferenceError
+    from rig.render.novel_views import render_novel_views, render_strip
 
+    novel = out / "novel-views"
     try:
         nv = render_novel_views(take, novel)
     except InferenceError as exc:  # an installation without the shipped model
@@ -174,20 +198,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
               f"from left + right, {nv['ms_per_view']:.0f} ms each")
         print(f"     PSNR against the real cameras {nv['psnr']:.2f} dB (the nearer source as it is: {nv['nearer_source_psnr']:.2f} dB); "
               f"PNGs (novel | real) in {novel}/")
-    if not nv.get("no_model"):
-        try:
-            strip = render_strip(take, out / "novel-strip.png")
-        except InferenceError as exc:  # an installation without the shipped model
-            print(f"     orbit and strip: skipped: {exc}")
-            strip = None
-    if not nv.get("no_model") and strip is not None:
-        orbit = step.orbit(take, min(ORBIT_FRAMES, rec["sets"]), out / "orbit.mp4")
-        print(f"     orbit video, left to right over the take: {orbit['output']} ({orbit['frames']} frames, {orbit['codec']}); "
-              f"strip (left | t = 0.25, 0.5, 0.75 | right): {strip['file']}")
-    print(f"\nthe take: {take}/  (index.jsonl, frames/, calibration.json; format: docs/sequence-format.md)")
-    print(f"disk: {mb(written(out))} written into {out} (take {mb(written(take))}, calibration views {mb(written(views_dir))})")
-    print(f"live: `rig live -c {rig_file}` runs this rig through the model and serves the novel view at "
-          f"http://{cfg.live.host}:{cfg.live.port}/ (Ctrl-C stops it)")
-    print(f"next: `rig record validate {take}`; read it for training with rig.storage.dataset.Sequence('{take}');"
-          f" export the calibration with `rig calibrate export {calib_file} --format colmap -o OUT`")
-    return 0 if val["readable"] else 1
+    if nv.get("no_model"):
+        return
+    try:
+        strip = render_strip(take, out / "novel-strip.png")
+    except InferenceError as exc:  # an installation without the shipped model
+        print(f"     orbit and strip: skipped: {exc}")
+        return
+    orbit = step.orbit(take, min(ORBIT_FRAMES, sets), out / "orbit.mp4")
+    print(f"     orbit video, left to right over the take: {orbit['output']} ({orbit['frames']} frames, {orbit['codec']}); "
+          f"strip (left | t = 0.25, 0.5, 0.75 | right): {strip['file']}")

@@ -19,7 +19,14 @@ def register(subparsers) -> None:
                               description="The Splat-SAP free-viewpoint model: ONNX export, torch-vs-ONNX-Runtime check, per-stage benchmark.")
     sub = p.add_subparsers(dest="model_command", metavar="SUBCOMMAND")
     sub.required = True
+    _add_export(sub)
+    _add_check(sub)
+    _add_bench(sub)
+    _add_eval(sub)
+    _add_render(sub)
 
+
+def _add_export(sub) -> None:
     e = sub.add_parser("export", help="export the model to ONNX",
                        description="Export the pipeline to one ONNX file (opset 18+): inputs are the left and right images, "
                                    "their intrinsics and poses, and the target intrinsics and pose; outputs the novel view and its depth.")
@@ -43,6 +50,8 @@ def register(subparsers) -> None:
     e.add_argument("--json", action="store_true", help="print one JSON object with the files written")
     e.set_defaults(func=cmd_export)
 
+
+def _add_check(sub) -> None:
     c = sub.add_parser("check", help="compare ONNX Runtime with torch on the same inputs",
                        description="Run the exported model with ONNX Runtime and the same model in torch on the same inputs "
                                    "and report the largest differences of the image (in [0, 1]) and the depth (metres).")
@@ -59,6 +68,8 @@ def register(subparsers) -> None:
     c.add_argument("--json", action="store_true", help="print one JSON object with max_abs_diff_image and max_abs_diff_depth")
     c.set_defaults(func=cmd_check)
 
+
+def _add_bench(sub) -> None:
     b = sub.add_parser("bench", help="time each stage in torch eager and ONNX Runtime",
                        description="Per-stage milliseconds in the paper's breakdown (point init, affine transform, depth init, depth refine, "
                                    "colour init, Gaussian plane, splatting, total) for torch eager and ONNX Runtime.")
@@ -78,6 +89,8 @@ def register(subparsers) -> None:
     b.add_argument("--json", action="store_true", help="print one JSON object: torch_ms, ort_ms (per stage and total), size, speedup")
     b.set_defaults(func=cmd_bench)
 
+
+def _add_eval(sub) -> None:
     v = sub.add_parser("eval", help="PSNR/SSIM, depth error and scale jitter on sequences with supervision cameras",
                        description="Render every supervision camera of every (or every k-th) frame set from the two sources and report "
                                    "PSNR and SSIM (full image and person mask), stage 1's depth AbsRel against ground truth, split into scale and shape, and "
@@ -101,6 +114,8 @@ def register(subparsers) -> None:
     v.add_argument("--json", action="store_true", help="print every figure as one JSON object")
     v.set_defaults(func=cmd_eval)
 
+
+def _add_render(sub) -> None:
     r = sub.add_parser("render", help="render a novel view (PNG) or a left-to-right sweep (MP4) from a recorded sequence",
                        description="Render the view of a virtual camera from a frame set's two source frames (the cameras with "
                                    "roles left and right) with the ONNX Runtime pipeline, as `rig live` does, without a browser. "

@@ -129,10 +129,10 @@ def _relaunch(args: argparse.Namespace) -> int:
     return subprocess.call(cmd)
 
 
-def cmd_train(args: argparse.Namespace) -> int:
-    from rig.commands._output import emit_json
+def _check_options(args: argparse.Namespace):
+    """The options against each other and the output folder (a new run needs a new or empty one, a
+    resumed run its checkpoint); the training configuration and the output folder."""
     from rig.commands._paths import output_folder
-    from rig.storage.dataset import TrainingSet, expand_sequences
 
     if args.stop_after is not None and args.stop_after < 1:
         raise ConfigError(f"--stop-after must be at least 1, got {args.stop_after}")
@@ -145,7 +145,6 @@ def cmd_train(args: argparse.Namespace) -> int:
     for flag, value in (("--cache-mb", args.cache_mb), ("--checkpoint-minutes", args.checkpoint_minutes), ("--max-minutes", args.max_minutes)):
         if value is not None and not (math.isfinite(value) and (value >= 0 if flag == "--cache-mb" else value > 0)):
             raise ConfigError(f"{flag} must be a number {'>= 0' if flag == '--cache-mb' else '> 0'}, got {value:g}")
-    # Everything a user can get wrong is checked before torch loads and before any work.
     cfg = build_config(args)
     out = output_folder(args.out)
     if not args.resume and out.exists() and ((out / "checkpoint.pt").exists() or (out / "metrics.jsonl").exists()):
@@ -177,6 +176,15 @@ def cmd_train(args: argparse.Namespace) -> int:
     elif pretrained and not args.resume and args.init is None:
         raise ConfigError("--backbone mast3r needs --weights PATH (the MASt3R checkpoint MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth; "
                           "rig never ships it)")
+    return cfg, out
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from rig.commands._output import emit_json
+    from rig.storage.dataset import TrainingSet, expand_sequences
+
+    # Everything a user can get wrong is checked before torch loads and before any work.
+    cfg, out = _check_options(args)
     data = TrainingSet(expand_sequences(args.sequences))
     if cfg.supervised:
         from inference.train.depth_supervision import truth_missing
