@@ -281,64 +281,75 @@ def create_app(engine: Engine, token: Optional[str], *, max_viewers: int = MAX_V
 
     @app.get("/mjpeg")
     async def mjpeg(request: Request):
-        if hub.viewers >= hub.max_viewers:
-            return JSONResponse({"error": f"too many viewers (at most {hub.max_viewers})"}, status_code=503)
-        try:
-            message = _view_message(request)
-            viewer = await hub.call(engine.add_viewer, message)
-        except ValueError as exc:
-            return _bad_request(f"viewpoint: {exc}")
-        hub.viewers += 1
-        closed = []
-
-        def close() -> None:  # from the stream's end, or the response's background task: once
-            if not closed:
-                closed.append(True)
-                hub.viewers -= 1
-                hub.call_detached(engine.remove_viewer, viewer)
-
-        async def parts():
-            try:
-                while not hub.stopping.is_set():
-                    frame = await hub.call(viewer.next_frame, FRAME_POLL_S)
-                    if frame is None:
-                        continue
-                    jpeg = frame.jpeg
-                    yield (f"--{MJPEG_BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n"
-                           f"X-Set-Index: {frame.set_index}\r\n\r\n").encode("ascii") + jpeg + b"\r\n"
-            finally:
-                close()
-
-        return StreamingResponse(parts(), media_type=f"multipart/x-mixed-replace; boundary={MJPEG_BOUNDARY}",
-                                 headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"},
-                                 background=BackgroundTask(close))
+        return await _mjpeg(request, hub, engine)
 
     @app.websocket("/ws")
     async def ws_viewer(ws: WebSocket):
-        await ws.accept()
-        if hub.viewers >= hub.max_viewers:
-            await ws.send_text(protocol.error_message(f"too many viewers (at most {hub.max_viewers})"))
-            await ws.close(code=1013)
-            return
-        hub.viewers += 1
-        try:
-            try:
-                viewer = await hub.call(engine.add_viewer)
-            except Exception as exc:
-                log.exception("live: add_viewer failed")
-                await ws.send_text(protocol.error_message(f"engine error: {exc}"))
-                await ws.close(code=1011)
-                return
-            try:
-                await _Connection(ws, viewer, hub).run()
-            except WebSocketDisconnect:  # gone before its hello
-                pass
-            finally:
-                hub.call_detached(engine.remove_viewer, viewer)
-        finally:
-            hub.viewers -= 1
+        await _websocket_viewer(ws, hub, engine)
 
     return app
+
+
+async def _mjpeg(request: Request, hub: _Hub, engine: Engine):
+    """GET /mjpeg: a viewer of its own (the query's viewpoint) as a multipart JPEG stream; the viewer
+    is removed when the stream ends or the client goes."""
+    if hub.viewers >= hub.max_viewers:
+        return JSONResponse({"error": f"too many viewers (at most {hub.max_viewers})"}, status_code=503)
+    try:
+        message = _view_message(request)
+        viewer = await hub.call(engine.add_viewer, message)
+    except ValueError as exc:
+        return _bad_request(f"viewpoint: {exc}")
+    hub.viewers += 1
+    closed = []
+
+    def close() -> None:  # from the stream's end, or the response's background task: once
+        if not closed:
+            closed.append(True)
+            hub.viewers -= 1
+            hub.call_detached(engine.remove_viewer, viewer)
+
+    async def parts():
+        try:
+            while not hub.stopping.is_set():
+                frame = await hub.call(viewer.next_frame, FRAME_POLL_S)
+                if frame is None:
+                    continue
+                jpeg = frame.jpeg
+                yield (f"--{MJPEG_BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n"
+                       f"X-Set-Index: {frame.set_index}\r\n\r\n").encode("ascii") + jpeg + b"\r\n"
+        finally:
+            close()
+
+    return StreamingResponse(parts(), media_type=f"multipart/x-mixed-replace; boundary={MJPEG_BOUNDARY}",
+                             headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"},
+                             background=BackgroundTask(close))
+
+
+async def _websocket_viewer(ws: WebSocket, hub: _Hub, engine: Engine) -> None:
+    """/ws: a viewer steered by its messages (`_Connection`), removed when the socket closes."""
+    await ws.accept()
+    if hub.viewers >= hub.max_viewers:
+        await ws.send_text(protocol.error_message(f"too many viewers (at most {hub.max_viewers})"))
+        await ws.close(code=1013)
+        return
+    hub.viewers += 1
+    try:
+        try:
+            viewer = await hub.call(engine.add_viewer)
+        except Exception as exc:
+            log.exception("live: add_viewer failed")
+            await ws.send_text(protocol.error_message(f"engine error: {exc}"))
+            await ws.close(code=1011)
+            return
+        try:
+            await _Connection(ws, viewer, hub).run()
+        except WebSocketDisconnect:  # gone before its hello
+            pass
+        finally:
+            hub.call_detached(engine.remove_viewer, viewer)
+    finally:
+        hub.viewers -= 1
 
 
 # --- running it ---------------------------------------------------------------------------------------------
