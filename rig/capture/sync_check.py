@@ -130,23 +130,31 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
         else:
             report["pulses"] = stats["sets"]
         if session.emulator is not None:
-            truth_host = {(p.train - 1, p.index): p.host_ns for p in session.emulator.pulses}
-            errors_us = [abs(h - truth_host[(e, i)]) / 1000.0 for e, i, h in session.grouper.mapped_pulses if (e, i) in truth_host]
-            report["clock_residual_us"] = _p(errors_us, 99)
+            truth = _emulator_truth(session, truth_cams, misassigned, exposed, detected)
+            report["clock_residual_us"] = truth["clock_error_us"]["p99"]
             report["clock_residual_source"] = "emulator truth"
-            fired = {(p.train - 1, p.index) for p in session.emulator.pulses}
-            truth = {"misassigned_frames": misassigned, "drops_injected": {}, "undetected_drops": {}, "false_drops": {},
-                     "drift_ppm": float(session.emulator.options["drift_ppm"]),
-                     "clock_error_us": {"p50": _p(errors_us, 50), "p99": _p(errors_us, 99), "max": max(errors_us) if errors_us else None}}
-            for name in truth_cams:
-                injected = fired - exposed[name]
-                truth["drops_injected"][name] = len(injected)
-                truth["undetected_drops"][name] = len(injected - detected[name])
-                truth["false_drops"][name] = len(detected[name] - injected)
             report["truth"] = truth
     report["limits"] = limits
     report["verdict"], report["failures"] = judge(report, limits)
     return report
+
+
+def _emulator_truth(session, truth_cams: set[str], misassigned: int, exposed: dict[str, set], detected: dict[str, set]) -> dict:
+    """What the emulated board and the sim cameras know: the clock model's error against each
+    pulse's true host time, the drops injected (pulses fired that a camera did not expose), those
+    the grouper missed and those it saw where there was none. Pulses as (train, index)."""
+    truth_host = {(p.train - 1, p.index): p.host_ns for p in session.emulator.pulses}
+    errors_us = [abs(h - truth_host[(e, i)]) / 1000.0 for e, i, h in session.grouper.mapped_pulses if (e, i) in truth_host]
+    fired = {(p.train - 1, p.index) for p in session.emulator.pulses}
+    truth = {"misassigned_frames": misassigned, "drops_injected": {}, "undetected_drops": {}, "false_drops": {},
+             "drift_ppm": float(session.emulator.options["drift_ppm"]),
+             "clock_error_us": {"p50": _p(errors_us, 50), "p99": _p(errors_us, 99), "max": max(errors_us) if errors_us else None}}
+    for name in truth_cams:
+        injected = fired - exposed[name]
+        truth["drops_injected"][name] = len(injected)
+        truth["undetected_drops"][name] = len(injected - detected[name])
+        truth["false_drops"][name] = len(detected[name] - injected)
+    return truth
 
 
 def _fired_pulses(session):
