@@ -4,6 +4,7 @@ rig from 50 views (intrinsics, stereo pair, joint bundle adjustment), with the a
     .venv/bin/python benchmarks/calibration.py [--views 50] [--json] [--synthetic]
     .venv/bin/python benchmarks/calibration.py --session [--cameras 6] [--size 640x360]
     .venv/bin/python benchmarks/calibration.py --real [DIR] [--json]
+    .venv/bin/python benchmarks/calibration.py --out-of-step [--json]
 
 `--session`: the calibration `rig demo` makes. The simulated calibration session of an N-camera rig
 (simulator.calibration_session: the A0 board held at stations through the volume) is rendered at
@@ -403,6 +404,52 @@ def real_main(root: Path, as_json: bool) -> int:
     return 0
 
 
+def out_of_step(as_json: bool) -> int:
+    """The synthetic session of tests/calibration/test_calib_pairing.py (three cameras, 40 instants of a
+    board under 10 % of every image, cam_1 one instant late), solved four ways: as named with every
+    intrinsic free (what the joint solve did before the pairing check and the lens priors), as named
+    with the priors, and with the offset applied with and without them. Errors against the truth."""
+    from calibration.boards import CharucoSpec
+    from calibration.camera import CalibrationError
+    from calibration.compare import errors_against_truth
+    from calibration.synthetic import image_share, moving_board_session, ring_rig
+
+    board = CharucoSpec(7, 5, 0.09, 0.0675, "DICT_5X5_100")
+    truth = ring_rig(3)
+    det = moving_board_session(truth, board, 40, shifts={"cam_1": 1}, noise_px=0.15, speed=0.47)
+    out = {"image_share": {c: round(v, 4) for c, v in image_share(truth, det).items()}, "runs": {}}
+    ways = {"as named, free intrinsics": Options(left="cam_0", lens_priors=False, offsets={"cam_1": 0}),
+            "as named, lens priors": Options(left="cam_0", offsets={"cam_1": 0}),
+            "check (default)": Options(left="cam_0"),
+            "offset applied, free intrinsics": Options(left="cam_0", lens_priors=False, auto_offset=True),
+            "offset applied, lens priors": Options(left="cam_0", auto_offset=True)}
+    for name, opts in ways.items():
+        t0 = time.perf_counter()
+        try:
+            res = calibrate_rig(det, board, opts)
+        except CalibrationError as exc:
+            out["runs"][name] = {"stopped": str(exc), "s": round(time.perf_counter() - t0, 2)}
+            continue
+        errs = errors_against_truth(res.rig, truth).cameras
+        out["runs"][name] = {"s": round(time.perf_counter() - t0, 2), "cameras": {
+            c: {"focal_pct": round(100 * (res.rig[c].fx / truth[c].fx - 1), 3), "rotation_deg": round(e["rotation_deg"], 3),
+                "position_mm": round(e["position_mm"], 2), "single_camera_focal_pct": round(100 * (res.intrinsics[c].K[0, 0] / truth[c].fx - 1), 3)}
+            for c, e in errs.items()}}
+    if as_json:
+        print(json.dumps(out))
+        return 0
+    print(f"board's largest share of each image: {per_camera(out['image_share'], '{:.3f}')}")
+    for name, r in out["runs"].items():
+        if "stopped" in r:
+            print(f"{name}: stopped ({r['s']:.1f} s): {r['stopped']}")
+            continue
+        print(f"{name} ({r['s']:.1f} s):")
+        for c, e in r["cameras"].items():
+            print(f"  {c}: focal {e['focal_pct']:+.2f} % (own fit {e['single_camera_focal_pct']:+.2f} %), rotation {e['rotation_deg']:.2f} deg, "
+                  f"position {e['position_mm']:.1f} mm")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=50, help="time steps (views) of the six-camera sequence")
@@ -413,7 +460,12 @@ def main() -> int:
     ap.add_argument("--size", default="640x360", help="with --session: image size (default 640x360, the demo's)")
     ap.add_argument("--real", nargs="?", const=REAL_DATA, type=Path, metavar="DIR",
                     help=f"benchmark `rig calibrate` on the real datasets in DIR (default {REAL_DATA})")
+    ap.add_argument("--out-of-step", action="store_true",
+                    help="the synthetic far-board session with a camera one instant late, solved as named and re-paired, "
+                         "with and without the lens priors")
     args = ap.parse_args()
+    if args.out_of_step:
+        return out_of_step(args.json)
     if args.real is not None:
         return real_main(args.real, args.json)
     if args.session:

@@ -7,7 +7,7 @@ An instant is a position in the sorted list of the names all cameras' views carr
 or the number that ends a file name): offset +1 pairs a camera's image named after position p with
 the others' images of position p + 1. Before the joint solve each camera is tried against the
 reference camera (the rig's left camera) at offsets -2..+2: the pair's stereo residual with both
-lenses held (`cv2.stereoCalibrate`, calibration.solve.stereo_pair) at each offset. A clear winner
+lenses held (their relative pose and the board poses adjusted to both cameras' corners) at each offset. A clear winner
 other than 0 means the camera is out of step.
 """
 from __future__ import annotations
@@ -23,6 +23,7 @@ from calibration.result import CameraIntrinsics
 
 SEARCH = (-2, -1, 0, 1, 2)
 MIN_PAIRED_VIEWS = 4  # views the camera and the reference must share at an offset to compare it
+MAX_VIEWS = 24  # views a residual is measured on at most (every k-th of those shared): its cost grows with them
 # The best offset wins clearly when its residual is at most this share of the residual at 0 (the
 # example that motivated the check: 0.53 against 1.05 px); a static board, or a board that moves
 # little between instants, leaves the residuals close and the images as they are.
@@ -122,21 +123,40 @@ def parse_offsets(specs: list[str] | None) -> dict[str, int]:
 
 def stereo_residual(reference: str, camera: str, corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
                     object_points: np.ndarray, size: tuple[int, int], offset: int, order: list[str]) -> float | None:
-    """The pair's stereo RMS (px) with both lenses held when `camera`'s images are shifted by `offset`;
-    None when they would share fewer than MIN_PAIRED_VIEWS views."""
-    from calibration.solve import stereo_pair
+    """The pair's stereo RMS (px) with both lenses held when `camera`'s images are shifted by `offset`:
+    the relative pose and every shared view's board pose adjusted to both cameras' corners together
+    (calibration.bundle, started from the single-camera fits' poses). None when they would share fewer
+    than MIN_PAIRED_VIEWS views. (`cv2.stereoCalibrate` gives the same figure, but its dense solver
+    spends seconds per offset on a few dozen mispaired views.)"""
+    from calibration import bundle, lens
+    from calibration.geometry import compose, invert_pose, robust_mean_pose, rotation_vector
 
-    moved = shift_fit(intr[camera], offset, order)
-    if len(set(moved.poses) & set(intr[reference].poses)) < MIN_PAIRED_VIEWS:
+    ref, moved = intr[reference], shift_fit(intr[camera], offset, order)
+    shifted = shift(corners[camera], offset, order)
+    shared = [v for v in order if v in ref.poses and v in moved.poses]
+    if len(shared) < MIN_PAIRED_VIEWS:
         return None
-    pair = {reference: corners[reference], camera: shift(corners[camera], offset, order)}
-    try:
-        out = stereo_pair(reference, camera, pair, {reference: intr[reference], camera: moved}, object_points, size)
-    except Exception:  # noqa: BLE001 - OpenCV refuses some hopeless pairings outright: no residual there
-        return None
-    if out is None or out["views"] < MIN_PAIRED_VIEWS or not np.isfinite(out["rms_px"]):
-        return None
-    return float(out["rms_px"])
+    shared = shared[:: -(-len(shared) // MAX_VIEWS)]  # spread over the session: enough to tell pairings apart
+    rel = [compose(*moved.poses[v], *invert_pose(*ref.poses[v])) for v in shared]  # reference -> camera, per view
+    R, t, _ = robust_mean_pose(np.array([r[0] for r in rel]), np.array([r[1] for r in rel]))
+    cam_idx, view_idx, xyz, uv = [], [], [], []
+    for k, v in enumerate(shared):
+        for ci, c in enumerate((corners[reference][v], shifted[v])):
+            cam_idx.append(np.full(len(c.ids), ci))
+            view_idx.append(np.full(len(c.ids), k))
+            xyz.append(object_points[c.ids])
+            uv.append(c.points)
+    problem = bundle.Problem(np.concatenate(cam_idx), np.concatenate(view_idx), np.concatenate(xyz), np.concatenate(uv), 2, len(shared),
+                             np.array([ref.model == "fisheye", moved.model == "fisheye"]))
+    intr0 = np.array([[f.K[0, 0], f.K[1, 1], f.K[0, 2], f.K[1, 2], *lens.coefficients("pinhole", f.dist)] for f in (ref, moved)])
+    cams0 = np.array([np.zeros(6), np.r_[rotation_vector(R), t]])
+    views0 = np.array([np.r_[rotation_vector(ref.poses[v][0]), ref.poses[v][1]] for v in shared])
+    # A few iterations: from the fits' poses the right pairing converges in two or three; a wrong one
+    # only has to show a residual well above it, not its exact least value.
+    sol = bundle.solve(problem, intr0, cams0, views0, fixed_cameras=(0,), fixed_intrinsics=np.ones((2, bundle.N_INTR), dtype=bool),
+                       max_iterations=6)
+    rms = sol.rms()
+    return float(rms) if np.isfinite(rms) else None
 
 
 def check_pairing(reference: str, cameras: list[str], corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
