@@ -40,10 +40,56 @@ def _error(status: int, reason: str) -> JSONResponse:
     return JSONResponse({"error": reason}, status_code=status)
 
 
+async def _change_settings(daemon, request: Request):
+    """PUT /settings: a JSON object of settings to change; the camera's settings after the change."""
+    body = await request.body()
+    if len(body) > MAX_BODY:
+        return _error(413, f"request body over {MAX_BODY} bytes")
+    try:
+        changes = json.loads(body or b"null")
+    except ValueError:
+        return _error(400, "the body is not JSON")
+    if not isinstance(changes, dict):
+        return _error(400, 'the body must be a JSON object, e.g. {"exposure_us": 8000}')
+    try:
+        return await asyncio.get_running_loop().run_in_executor(None, daemon.change_settings, changes)
+    except ConfigError as exc:
+        return _error(422, str(exc))
+    except RigError as exc:
+        return _error(503, str(exc))
+
+
+class _FrameReader:
+    """The daemon's ring as GET /frames/next reads it: attached on the first request."""
+
+    def __init__(self, daemon):
+        self.daemon = daemon
+        self.ring: Optional[RingReader] = None
+
+    def next(self, after: int, timeout: float):
+        """(sequence number, frame) of the frame after `after` (-1: the newest), waiting up to
+        `timeout` seconds; None when none came."""
+        ring = self.ring
+        if ring is None:
+            ring = self.ring = RingReader.attach(self.daemon.ring.path)
+        k = ring.latest() - 1 if after < 0 else after + 1
+        k = max(k, ring.latest() - ring.slots + 1, 0)
+        if not ring.wait(k, timeout):
+            return None
+        for _ in range(3):
+            try:
+                return k, ring.read(k)
+            except FrameOverwritten:  # this reader fell a ring behind: the oldest frame still there
+                k = max(k + 1, ring.latest() - ring.slots + 1)
+            except FrameNotReady:
+                return None
+        return None
+
+
 def create_app(daemon, token: Optional[str]) -> FastAPI:
     app = FastAPI(title=f"rig camera daemon {daemon.cfg.name}", docs_url=None, redoc_url=None, openapi_url=None)
     app.add_middleware(AccessGuard, token=token)
-    reader: dict[str, RingReader] = {}
+    frames = _FrameReader(daemon)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request, exc):  # bad query values: one line, 400
@@ -60,21 +106,7 @@ def create_app(daemon, token: Optional[str]) -> FastAPI:
 
     @app.put("/settings")
     async def put_settings(request: Request):
-        body = await request.body()
-        if len(body) > MAX_BODY:
-            return _error(413, f"request body over {MAX_BODY} bytes")
-        try:
-            changes = json.loads(body or b"null")
-        except ValueError:
-            return _error(400, "the body is not JSON")
-        if not isinstance(changes, dict):
-            return _error(400, 'the body must be a JSON object, e.g. {"exposure_us": 8000}')
-        try:
-            return await asyncio.get_running_loop().run_in_executor(None, daemon.change_settings, changes)
-        except ConfigError as exc:
-            return _error(422, str(exc))
-        except RigError as exc:
-            return _error(503, str(exc))
+        return await _change_settings(daemon, request)
 
     @app.post("/start")
     async def start():
@@ -96,28 +128,11 @@ def create_app(daemon, token: Optional[str]) -> FastAPI:
             return _error(503, str(exc))
         return {"triggered": True}
 
-    def _next_frame(after: int, timeout: float):
-        ring = reader.get("ring")
-        if ring is None:
-            ring = reader["ring"] = RingReader.attach(daemon.ring.path)
-        k = ring.latest() - 1 if after < 0 else after + 1
-        k = max(k, ring.latest() - ring.slots + 1, 0)
-        if not ring.wait(k, timeout):
-            return None
-        for _ in range(3):
-            try:
-                return k, ring.read(k)
-            except FrameOverwritten:  # this reader fell a ring behind: the oldest frame still there
-                k = max(k + 1, ring.latest() - ring.slots + 1)
-            except FrameNotReady:
-                return None
-        return None
-
     @app.get("/frames/next")
     async def next_frame(after: int = -1, timeout: float = 1.0):
         if not (0 <= timeout <= MAX_WAIT_S):
             return _error(400, f"timeout must be from 0 to {MAX_WAIT_S:g} s")
-        got = await asyncio.get_running_loop().run_in_executor(None, _next_frame, after, timeout)
+        got = await asyncio.get_running_loop().run_in_executor(None, frames.next, after, timeout)
         if got is None:
             return Response(status_code=204)
         k, frame = got
