@@ -495,9 +495,8 @@ def _take_images(rig, take: Path, set_number):
 
 def cmd_capture(args: argparse.Namespace) -> int:
     """Pull synchronised frame sets from the rig, keep those that add coverage, write DIR/CAMNAME/NNNN.png."""
-    import dataclasses
-
     from calibration.boards import load_board
+    from rig.capture.calibration_views import capture_views, check_capture, still_settings
     from rig.commands._paths import new_output_folder
     from rig.config import load_config
     from rig.errors import ConfigError
@@ -512,14 +511,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
         if not (value >= 0 and value < float("inf")):
             raise ConfigError(f"{name} must be a number of seconds >= 0, got {value}")
     out = new_output_folder(args.output)
-    # Calibration views are stills: cameras that take triggers are fired by software so that every
-    # camera exposes the same instant without the trigger board; free-running ones are paired by time.
-    settings = []
-    for c in cfg.cameras:
-        s = dataclasses.replace(c, trigger="software" if c.trigger in ("hardware", "software") else "free")
-        if hasattr(c, "rig"):
-            s.rig = c.rig  # the whole rig, which simulated cameras need to show the shared scene
-        settings.append(s)
+    settings = still_settings(cfg.cameras)  # views are stills: no trigger board
     # Simulated cameras have nobody to carry the board: the scene becomes a calibration session
     # that shows the board given here at stations through the volume.
     session = None
@@ -531,8 +523,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
     if session is not None and not args.json:
         print(session.describe(), flush=True)
     roles = {c.role: c.name for c in cfg.cameras if c.role in ("left", "right")}
-    summary = _capture_views(settings, board, out, roles, args.views, limit, args.interval, args.timeout)
-    _check_capture(summary, args.board, [s.name for s in settings])
+    summary = capture_views(settings, board, out, roles, args.views, limit, args.interval, args.timeout)
+    check_capture(summary, args.board, [s.name for s in settings])
     if args.json:
         from rig.commands._output import emit_json
 
@@ -555,121 +547,3 @@ def _free_name(name: str) -> str:
         k += 1
         name = f"{stem}-{k}{suffix}"
     return name
-
-
-def _capture_views(settings, board, out: Path, roles: dict, views: int, limit: int, interval: float, timeout: float) -> dict:
-    import json
-    import time
-    from concurrent.futures import ThreadPoolExecutor
-
-    import cv2
-
-    from calibration.detect import make_detector, to_gray
-    from calibration.selection import ViewSelector
-    from rig.cameras import open_camera
-    from rig.errors import StorageError
-
-    detectors = {s.name: make_detector(board) for s in settings}  # one each: detection runs in parallel
-    selector = ViewSelector({s.name: (s.width, s.height) for s in settings})
-    cameras = []
-    status = _status()
-    kept: list[dict] = []
-    sightings = {s.name: 0 for s in settings}
-    looked = 0
-    try:
-        for s in settings:
-            cameras.append(open_camera(s))
-        for cam in cameras:
-            cam.start()
-        with ThreadPoolExecutor(max_workers=len(cameras)) as pool:
-            while looked < limit and len(kept) < views:
-                images = _grab_set(cameras, timeout)
-                looked += 1
-                found = dict(zip(images, pool.map(lambda kv: detectors[kv[0]](kv[1]), images.items())))
-                for name, corners in found.items():
-                    sightings[name] += corners is not None
-                verdict = selector.consider(found)
-                if verdict.keep:
-                    index = len(kept)
-                    if index == 0 and roles:  # tells `rig calibrate run` which cameras are the stereo pair
-                        out.mkdir(parents=True, exist_ok=True)
-                        (out / "roles.json").write_text(json.dumps(roles) + "\n")
-                    for name, img in images.items():
-                        path = out / name / f"{index:04d}.png"
-                        path.parent.mkdir(parents=True, exist_ok=True)
-                        if not cv2.imwrite(str(path), _to_bgr(img, to_gray)):
-                            raise StorageError(f"{path}: could not write the image (disk full or no permission?)")
-                    kept.append({"view": f"{index:04d}", "cameras": verdict.cameras, "reason": verdict.reason})
-                status.update(f"looked at {looked}/{limit} frame sets, kept {len(kept)} views (stops at {views})")
-                if interval > 0:
-                    time.sleep(interval)
-    finally:
-        for cam in cameras:
-            try:
-                cam.stop()
-                cam.close()
-            except Exception:  # closing must not hide the error that stopped the capture
-                pass
-        status.done()
-    per_camera = {s.name: sum(1 for k in kept if s.name in k["cameras"]) for s in settings}
-    return {"output": str(out), "views_kept": len(kept), "views_looked_at": looked, "coverage": selector.coverage(),
-            "views_per_camera": per_camera, "board_seen": sightings, "kept": kept}
-
-
-def _check_capture(summary: dict, board_file, names: list[str]) -> None:
-    """A capture that `rig calibrate run` cannot use fails (exit 1) and says why; the views it kept
-    stay in its folder."""
-    from calibration.solve import MIN_VIEWS_PER_CAMERA
-    from rig.errors import RigError
-
-    looked = summary["views_looked_at"]
-    if summary["views_kept"] == 0:
-        if not any(summary["board_seen"].values()):
-            raise RigError(f"the board was never seen in {looked} frame sets: check that {board_file} describes the board shown "
-                           "(type, squares, sizes, marker dictionary) and that the cameras see it; no view was kept")
-        raise RigError(f"the board was seen but never with enough corners ({looked} frame sets); no view was kept")
-    few = {n: summary["views_per_camera"][n] for n in names if summary["views_per_camera"][n] < MIN_VIEWS_PER_CAMERA}
-    if few:
-        which = ", ".join(f"'{n}' in {v}" for n, v in few.items())
-        raise RigError(f"too few views for `rig calibrate run`: the board was seen by {which} of the {summary['views_kept']} kept views "
-                       f"({MIN_VIEWS_PER_CAMERA} per camera are needed); show it to those cameras and capture again into a new folder "
-                       f"(the views kept are in {summary['output']})")
-
-
-def _to_bgr(image, to_gray):
-    """PNG-ready pixels: mono stays mono, RGB becomes OpenCV's BGR order."""
-    import cv2
-    import numpy as np
-
-    img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] == 3:
-        return cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    if img.dtype != np.uint8 and img.dtype != np.uint16:
-        return to_gray(img)
-    return img
-
-
-def _grab_set(cameras, timeout: float) -> dict:
-    """One synchronised set of images: software-triggered cameras fire together; free-running cameras
-    give their newest frame."""
-    from rig.errors import CameraTimeout
-
-    triggered = [c for c in cameras if c.settings.trigger == "software"]
-    for cam in triggered:
-        cam.software_trigger()
-    images = {}
-    for cam in cameras:
-        try:
-            frame = cam.get_frame(timeout)
-        except CameraTimeout as exc:
-            raise CameraTimeout(f"{exc} (a slow camera, or a simulated one on a busy machine: give it longer with --timeout SECONDS)") from None
-        if cam.settings.trigger == "software":
-            images[cam.name] = frame.image
-        else:
-            while True:  # drop what queued up while we were detecting: the newest frame is the present
-                try:
-                    frame = cam.get_frame(0.0)
-                except CameraTimeout:
-                    break
-            images[cam.name] = frame.image
-    return images

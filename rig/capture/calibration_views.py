@@ -1,0 +1,148 @@
+"""Calibration views (`rig calibrate capture`): stills, not the session's synchronised sets.
+
+Calibration views do not need the trigger board: every camera is opened directly, cameras that take
+triggers are switched to software trigger and fired one after the other for each view (a loop of
+commands, microseconds to milliseconds apart: not a hardware-synchronous exposure, so the board is
+held still), and a free-running camera gives the newest frame it has (what queued up while the last
+view was detected is dropped). A view is kept only when it adds coverage (calibration.selection).
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+
+def still_settings(cameras) -> list:
+    """The cameras' settings for stills: cameras that take triggers are fired by software so that
+    every camera exposes the same instant without the trigger board; free-running ones are paired
+    by time."""
+    settings = []
+    for c in cameras:
+        s = dataclasses.replace(c, trigger="software" if c.trigger in ("hardware", "software") else "free")
+        if hasattr(c, "rig"):
+            s.rig = c.rig  # the whole rig, which simulated cameras need to show the shared scene
+        settings.append(s)
+    return settings
+
+
+def capture_views(settings, board, out: Path, roles: dict, views: int, limit: int, interval: float, timeout: float) -> dict:
+    """Look at up to `limit` sets of stills from the cameras of `settings` (`still_settings`) and keep
+    those that add coverage of the board, until `views` are kept: OUT/CAMERA/NNNN.png, and
+    OUT/roles.json naming the stereo pair (`roles`) with the first. The summary: views kept and
+    looked at, coverage, views per camera, how often each camera saw the board, and each kept view."""
+    import json
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    from calibration.detect import make_detector, to_gray
+    from calibration.selection import ViewSelector
+    from rig.cameras import open_camera
+    from rig.errors import StorageError
+    from rig.progress import StatusLine
+
+    detectors = {s.name: make_detector(board) for s in settings}  # one each: detection runs in parallel
+    selector = ViewSelector({s.name: (s.width, s.height) for s in settings})
+    cameras = []
+    status = StatusLine()
+    kept: list[dict] = []
+    sightings = {s.name: 0 for s in settings}
+    looked = 0
+    try:
+        for s in settings:
+            cameras.append(open_camera(s))
+        for cam in cameras:
+            cam.start()
+        with ThreadPoolExecutor(max_workers=len(cameras)) as pool:
+            while looked < limit and len(kept) < views:
+                images = _grab_set(cameras, timeout)
+                looked += 1
+                found = dict(zip(images, pool.map(lambda kv: detectors[kv[0]](kv[1]), images.items())))
+                for name, corners in found.items():
+                    sightings[name] += corners is not None
+                verdict = selector.consider(found)
+                if verdict.keep:
+                    index = len(kept)
+                    if index == 0 and roles:  # tells `rig calibrate run` which cameras are the stereo pair
+                        out.mkdir(parents=True, exist_ok=True)
+                        (out / "roles.json").write_text(json.dumps(roles) + "\n")
+                    for name, img in images.items():
+                        path = out / name / f"{index:04d}.png"
+                        path.parent.mkdir(parents=True, exist_ok=True)
+                        if not cv2.imwrite(str(path), _to_bgr(img, to_gray)):
+                            raise StorageError(f"{path}: could not write the image (disk full or no permission?)")
+                    kept.append({"view": f"{index:04d}", "cameras": verdict.cameras, "reason": verdict.reason})
+                status.update(f"looked at {looked}/{limit} frame sets, kept {len(kept)} views (stops at {views})")
+                if interval > 0:
+                    time.sleep(interval)
+    finally:
+        for cam in cameras:
+            try:
+                cam.stop()
+                cam.close()
+            except Exception:  # closing must not hide the error that stopped the capture
+                pass
+        status.done()
+    per_camera = {s.name: sum(1 for k in kept if s.name in k["cameras"]) for s in settings}
+    return {"output": str(out), "views_kept": len(kept), "views_looked_at": looked, "coverage": selector.coverage(),
+            "views_per_camera": per_camera, "board_seen": sightings, "kept": kept}
+
+
+def check_capture(summary: dict, board_file, names: list[str]) -> None:
+    """A capture that `rig calibrate run` cannot use fails (exit 1) and says why; the views it kept
+    stay in its folder."""
+    from calibration.solve import MIN_VIEWS_PER_CAMERA
+    from rig.errors import RigError
+
+    looked = summary["views_looked_at"]
+    if summary["views_kept"] == 0:
+        if not any(summary["board_seen"].values()):
+            raise RigError(f"the board was never seen in {looked} frame sets: check that {board_file} describes the board shown "
+                           "(type, squares, sizes, marker dictionary) and that the cameras see it; no view was kept")
+        raise RigError(f"the board was seen but never with enough corners ({looked} frame sets); no view was kept")
+    few = {n: summary["views_per_camera"][n] for n in names if summary["views_per_camera"][n] < MIN_VIEWS_PER_CAMERA}
+    if few:
+        which = ", ".join(f"'{n}' in {v}" for n, v in few.items())
+        raise RigError(f"too few views for `rig calibrate run`: the board was seen by {which} of the {summary['views_kept']} kept views "
+                       f"({MIN_VIEWS_PER_CAMERA} per camera are needed); show it to those cameras and capture again into a new folder "
+                       f"(the views kept are in {summary['output']})")
+
+
+def _to_bgr(image, to_gray):
+    """PNG-ready pixels: mono stays mono, RGB becomes OpenCV's BGR order."""
+    import cv2
+    import numpy as np
+
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 3:
+        return cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    if img.dtype != np.uint8 and img.dtype != np.uint16:
+        return to_gray(img)
+    return img
+
+
+def _grab_set(cameras, timeout: float) -> dict:
+    """One synchronised set of images: software-triggered cameras fire together; free-running cameras
+    give their newest frame."""
+    from rig.errors import CameraTimeout
+
+    triggered = [c for c in cameras if c.settings.trigger == "software"]
+    for cam in triggered:
+        cam.software_trigger()
+    images = {}
+    for cam in cameras:
+        try:
+            frame = cam.get_frame(timeout)
+        except CameraTimeout as exc:
+            raise CameraTimeout(f"{exc} (a slow camera, or a simulated one on a busy machine: give it longer with --timeout SECONDS)") from None
+        if cam.settings.trigger == "software":
+            images[cam.name] = frame.image
+        else:
+            while True:  # drop what queued up while we were detecting: the newest frame is the present
+                try:
+                    frame = cam.get_frame(0.0)
+                except CameraTimeout:
+                    break
+            images[cam.name] = frame.image
+    return images
