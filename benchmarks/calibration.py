@@ -2,7 +2,7 @@
 rig from 50 views (intrinsics, stereo pair, joint bundle adjustment), with the accuracy reached.
 
     .venv/bin/python benchmarks/calibration.py [--views 50] [--json] [--synthetic]
-    .venv/bin/python benchmarks/calibration.py --session [--cameras 6] [--size 640x360]
+    .venv/bin/python benchmarks/calibration.py --session [--cameras 6] [--size 640x360] [--compare-free]
     .venv/bin/python benchmarks/calibration.py --real [DIR] [--json]
     .venv/bin/python benchmarks/calibration.py --out-of-step [--json]
 
@@ -129,9 +129,10 @@ def time_solve(detections: DetectionSet, truth):
     }
 
 
-def session_accuracy(n_cameras: int, width: int, height: int) -> dict:
+def session_accuracy(n_cameras: int, width: int, height: int, compare_free: bool = False) -> dict:
     """Errors against the truth of a session's calibration, from all stations and from its first
-    parts (a capture with fewer --views), with the time per rendered and detected image."""
+    parts (a capture with fewer --views), with the time per rendered and detected image; each solved
+    with the lens priors and, with `compare_free`, also with every intrinsic free."""
     from rig.sim.rig_config import sim_rig_config
     from rig.config import parse_config
     from simulator.calibration_session import CalibrationSession
@@ -157,6 +158,9 @@ def session_accuracy(n_cameras: int, width: int, height: int) -> dict:
         out["by_stations"][n] = {"views_used": result.rig.meta["views_used"],
                                  "worst_error": {k: round(v, 4) for k, v in errors_against_truth(result.rig, session.truth).worst.items()},
                                  "warnings": result.rig.meta["report"]["warnings"]}
+        if compare_free:
+            free = calibrate_rig(det, CHARUCO, Options(fix_k3=True, lens_priors=False))
+            out["by_stations"][n]["worst_error_free_intrinsics"] = {k: round(v, 4) for k, v in errors_against_truth(free.rig, session.truth).worst.items()}
     return out
 
 
@@ -458,6 +462,7 @@ def main() -> int:
     ap.add_argument("--session", action="store_true", help="the simulated calibration session `rig demo` uses (see above)")
     ap.add_argument("--cameras", type=int, default=6, help="with --session: cameras in the rig (default 6)")
     ap.add_argument("--size", default="640x360", help="with --session: image size (default 640x360, the demo's)")
+    ap.add_argument("--compare-free", action="store_true", help="with --session: solve each part again with every intrinsic free")
     ap.add_argument("--real", nargs="?", const=REAL_DATA, type=Path, metavar="DIR",
                     help=f"benchmark `rig calibrate` on the real datasets in DIR (default {REAL_DATA})")
     ap.add_argument("--out-of-step", action="store_true",
@@ -470,7 +475,7 @@ def main() -> int:
         return real_main(args.real, args.json)
     if args.session:
         w, h = (int(v) for v in args.size.lower().split("x"))
-        res = session_accuracy(args.cameras, w, h)
+        res = session_accuracy(args.cameras, w, h, args.compare_free)
         if args.json:
             print(json.dumps(res))
             return 0
@@ -479,6 +484,8 @@ def main() -> int:
         for n, r in res["by_stations"].items():
             print(f"  first {n} stations: {describe(r['worst_error'])}; views used {r['views_used']}"
                   + (f"; {len(r['warnings'])} warnings" if r["warnings"] else ""))
+            if "worst_error_free_intrinsics" in r:
+                print(f"    with every intrinsic free (no lens priors): {describe(r['worst_error_free_intrinsics'])}")
         return 0
 
     results = {}
