@@ -122,7 +122,7 @@ def parse_offsets(specs: list[str] | None) -> dict[str, int]:
 
 
 def stereo_residual(reference: str, camera: str, corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
-                    object_points: np.ndarray, size: tuple[int, int], offset: int, order: list[str]) -> float | None:
+                    object_points: np.ndarray, offset: int, order: list[str]) -> float | None:
     """The pair's stereo RMS (px) with both lenses held when `camera`'s images are shifted by `offset`:
     the relative pose and every shared view's board pose adjusted to both cameras' corners together
     (calibration.bundle, started from the single-camera fits' poses). None when they would share fewer
@@ -160,7 +160,7 @@ def stereo_residual(reference: str, camera: str, corners: dict[str, dict[str, Co
 
 
 def check_pairing(reference: str, cameras: list[str], corners: dict[str, dict[str, Corners]], intr: dict[str, CameraIntrinsics],
-                  object_points: np.ndarray, size: tuple[int, int], given: dict[str, int] | None = None) -> list[PairingCheck]:
+                  object_points: np.ndarray, given: dict[str, int] | None = None) -> list[PairingCheck]:
     """Each camera but the reference tried at offsets -2..+2 against it; cameras given an offset are
     not searched (their check records the offset as given). Cameras sharing too few views with the
     reference at offset 0 are left out."""
@@ -175,7 +175,7 @@ def check_pairing(reference: str, cameras: list[str], corners: dict[str, dict[st
             continue
         residuals = {}
         for k in SEARCH:
-            r = stereo_residual(reference, cam, corners, intr, object_points, size, k, order)
+            r = stereo_residual(reference, cam, corners, intr, object_points, k, order)
             if r is not None:
                 residuals[k] = r
         if 0 not in residuals:

@@ -427,8 +427,8 @@ def _initial_camera_poses(order: list[str], intr: dict[str, CameraIntrinsics], s
     return placed
 
 
-def lens_information(fit: CameraIntrinsics, views: dict[str, Corners], object_points: np.ndarray, opts: Options,
-                     size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+def lens_information(fit: CameraIntrinsics, views: dict[str, Corners], object_points: np.ndarray,
+                     opts: Options) -> tuple[np.ndarray, np.ndarray] | None:
     """The lens a camera's own views give and what they say about it: (9,) its nine slots, as the
     bundle adjustment on this camera alone finishes the single-camera fit, and (9, 9) their
     information there (bundle.Solution.intrinsics_information, every board pose marginalised) in
@@ -485,7 +485,7 @@ def _pair_instants(detections: DetectionSet, intr: dict[str, CameraIntrinsics], 
             corners[c] = pairing.shift(corners[c], k, inst)
             intr[c] = pairing.shift_fit(intr[c], k, inst)
     say("checking that every camera's images are paired with the same instants")
-    checks = pairing.check_pairing(left, order, corners, intr, object_points, detections.image_size[left], opts.offsets)
+    checks = pairing.check_pairing(left, order, corners, intr, object_points, opts.offsets)
     found = [ch for ch in checks if ch.clear]
     if found and not opts.auto_offset:
         raise CalibrationError(
@@ -530,7 +530,7 @@ def calibrate_rig(
         kept = {v: detections.corners[c][v] for v in intr[c].view_rms}
         intr[c].focal_spread = resampled_spread(c, detections.image_size[c], kept, object_points, opts, intr[c].K, intr[c].dist)
         if opts.lens_priors and not intr[c].given:
-            measured = lens_information(intr[c], kept, object_points, opts, detections.image_size[c])
+            measured = lens_information(intr[c], kept, object_points, opts)
             if measured is not None:
                 intr[c].lens_mean, intr[c].lens_information = measured
                 intr[c].lens_sigma = lens_sigmas(intr[c].lens_information, intr[c].model)
