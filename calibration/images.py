@@ -25,6 +25,11 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 _PAIR_RE = re.compile(r"^(left|right)[_-]?(.+)$", re.IGNORECASE)
 
 
+def natural_key(s: str):
+    """Sort key of view and camera names: "view2" before "view10"."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
+
+
 @dataclass
 class ImageSet:
     """Image paths per camera and view: paths[camera][view] -> Path."""

@@ -20,7 +20,8 @@ from calibration.detect import Corners
 from calibration.report import coverage
 from calibration.quality import COVERAGE_WEAK, RMS_UNUSABLE_PX, spread_reason, verdict
 from calibration.result import Rejection
-from calibration.solve import MIN_VIEWS_PER_CAMERA, Options, calibrate_intrinsics, natural_key, resampled_spread
+from calibration.images import natural_key
+from calibration.solve import MIN_VIEWS_PER_CAMERA, Options, calibrate_intrinsics, resampled_spread
 
 
 @dataclass

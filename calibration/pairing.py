@@ -19,6 +19,7 @@ import numpy as np
 
 from calibration.camera import CalibrationError
 from calibration.detect import Corners
+from calibration.images import natural_key
 from calibration.result import CameraIntrinsics
 
 SEARCH = (-2, -1, 0, 1, 2)
@@ -57,7 +58,6 @@ def _count(n: int) -> str:
 
 def instant_order(views_per_camera: dict[str, list[str]] | dict[str, dict]) -> list[str]:
     """Every instant any camera has an image of, in order (names compared as natural sort keys)."""
-    from calibration.solve import natural_key
 
     return sorted({v for per in views_per_camera.values() for v in per}, key=natural_key)
 

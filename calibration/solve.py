@@ -14,7 +14,6 @@
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -32,7 +31,7 @@ from calibration.geometry import (
     rodrigues,
     rotation_vector,
 )
-from calibration.images import DetectionSet
+from calibration.images import DetectionSet, natural_key
 from calibration.known import prior_sigmas
 from calibration.quality import focal_spread
 from calibration.report import summary_meta
@@ -71,10 +70,6 @@ class Options:
         if known is not None:
             return known.model
         return "fisheye" if (self.fisheye is True or camera in (self.fisheye or ())) else "pinhole"
-
-
-def natural_key(s: str):
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
 
 
 def camera_order(names: list[str], left: str | None, right: str | None) -> tuple[list[str], str, str | None]:
