@@ -18,13 +18,16 @@ def pytest_configure(config):
     """Simulated cameras cache their pre-rendered loops; a test run keeps its own cache (shared by
     its tests and the commands they start) and leaves the user's ~/.cache alone.
 
-    Under pytest-xdist each worker gets its share of the cores for torch's and OpenMP's threads
-    (it and the commands it starts): two workers each spinning two threads on two cores spend
+    Under pytest-xdist each worker gets its share of the cores for torch's, OpenMP's and BLAS's
+    threads (it and the commands it starts): two workers each spinning two threads on two cores spend
     much of the machine waiting for each other."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
     if workers > 0:
         share = str(max(1, (os.cpu_count() or 1) // workers))
-        os.environ["OMP_NUM_THREADS"] = share
+        # numpy's OpenBLAS spins its own threads too (it reads its variable when numpy loads, after
+        # this hook): oversubscribed, its solves ran about 100 times slower under load
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = share
         import cv2
         import torch
 
