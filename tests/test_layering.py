@@ -43,7 +43,7 @@ RIG_LAYERS = (
     ("rig.config",),
     ("rig.daemon",),
     ("rig.storage",),
-    ("rig.capture",),
+    ("rig.capture", "rig.calibrate"),  # capture takes the views; calibrate solves from views on disk
     ("rig.live",),
     ("rig.render",),  # a recorded take through the model, outside the live loop
     ("rig.demo",),  # what rig demo builds around the ordinary steps

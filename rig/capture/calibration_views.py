@@ -11,6 +11,16 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+# `rig calibrate capture`'s defaults: frame sets looked at before giving up, seconds to wait for a
+# camera's frame (a simulated camera renders its view on the busy host).
+MAX_FRAMES = 2000
+TIMEOUT_S = 5.0
+
+
+def stereo_roles(cameras) -> dict:
+    """The stereo pair among the cameras' configs: {"left": name, "right": name} (what a config names)."""
+    return {c.role: c.name for c in cameras if c.role in ("left", "right")}
+
 
 def still_settings(cameras) -> list:
     """The cameras' settings for stills: cameras that take triggers are fired by software so that

@@ -5,9 +5,6 @@ demo with one error naming the step.
 """
 from __future__ import annotations
 
-import contextlib
-import io
-import json
 import sys
 from pathlib import Path
 
@@ -24,19 +21,41 @@ def _failed(argv: list[str], errors: list[str]):
     return RigError(f"demo step `rig {' '.join(argv)}` failed (exit 1)")
 
 
-def run_command(argv: list[str]) -> dict:
-    """A step with no function of its own outside its command: the command, run in this process
-    with --json, its output read back."""
-    from rig.commands import dispatch
-    from rig.errors import RigError
+def calibration_views(rig_file: Path, board_file: Path, out: Path, views: int) -> dict:
+    """`rig calibrate capture -c RIG --board BOARD -o OUT --views N` on the demo's simulated rig, whose
+    scene becomes a calibration session (the board held at stations through the volume)."""
+    from calibration.boards import load_board
+    from rig.capture.calibration_views import MAX_FRAMES, TIMEOUT_S, capture_views, check_capture, stereo_roles, still_settings
+    from rig.commands._paths import new_output_folder
+    from rig.config import load_config
+    from rig.sim.calibration import calibration_session
 
-    echo(argv)
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        rc = dispatch(argv + ["--json"])
-    if rc != 0:
-        raise RigError(f"demo step `rig {' '.join(argv)}` failed (exit {rc})")
-    return json.loads(buf.getvalue())
+    echo(["calibrate", "capture", "-c", str(rig_file), "--board", str(board_file), "-o", str(out), "--views", str(views)])
+    cfg = load_config(rig_file, check_calibration=False)
+    board = load_board(board_file)
+    new_output_folder(out)
+    settings = still_settings(cfg.cameras)
+    session = calibration_session(settings, board)
+    summary = capture_views(settings, board, out, stereo_roles(cfg.cameras), views, min(MAX_FRAMES, session.sets), 0.0, TIMEOUT_S)
+    check_capture(summary, board_file, [s.name for s in settings])
+    return summary
+
+
+def calibrate(images: Path, board_file: Path, output: Path) -> dict:
+    """`rig calibrate run --images DIR --board BOARD -o OUT --k3 hold`: the simulated lenses are
+    ordinary (62 degrees across, k3 = 0), so k3 is held, as it should be for such lenses; p1 p2 are
+    fitted (the simulator's lenses have them)."""
+    from rig.calibrate.lens import LensChoices
+    from rig.calibrate.run import calibrate_images, run_inputs
+    from rig.commands._paths import output_file
+
+    echo(["calibrate", "run", "--images", str(images), "--board", str(board_file), "-o", str(output), "--k3", "hold"])
+    inputs = run_inputs(str(images), str(board_file), LensChoices(k3="hold"))
+    result = calibrate_images(inputs, output_file(output))
+    failed = result.write_error()
+    if failed is not None:
+        raise failed
+    return result.summary()
 
 
 def record(rig_file: Path, take: Path, seconds: float) -> dict:

@@ -10,6 +10,8 @@ EXPORT_FORMATS = ("opencv", "easymocap", "anipose", "nerfstudio", "colmap")
 
 
 def register(subparsers) -> None:
+    from rig.capture.calibration_views import MAX_FRAMES, TIMEOUT_S
+
     p = subparsers.add_parser("calibrate", help="calibrate the rig with a ChArUco or chessboard board",
                               description="Calibrate the rig's cameras (intrinsics, stereo pair, all cameras in the left camera's frame).")
     sub = p.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND")
@@ -96,9 +98,9 @@ def register(subparsers) -> None:
     c.add_argument("--board", required=True, metavar="BOARD.toml", help="board description")
     c.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the views")
     c.add_argument("--views", type=int, default=40, help="stop after keeping this many views (default 40)")
-    c.add_argument("--max-frames", type=int, default=2000, help="stop after looking at this many frame sets (default 2000)")
+    c.add_argument("--max-frames", type=int, default=MAX_FRAMES, help=f"stop after looking at this many frame sets (default {MAX_FRAMES})")
     c.add_argument("--interval", type=float, default=0.0, help="seconds between frame sets (default 0: as fast as frames come)")
-    c.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for a camera's frame (default 5)")
+    c.add_argument("--timeout", type=float, default=TIMEOUT_S, help=f"seconds to wait for a camera's frame (default {TIMEOUT_S:g})")
     c.add_argument("--json", action="store_true", help="print one JSON object with what was kept")
     c.set_defaults(func=cmd_capture)
 
@@ -123,12 +125,6 @@ def register(subparsers) -> None:
     e.add_argument("--view", metavar="NNNN", help="with --images: the view to use (default: the first view every camera has)")
     e.add_argument("--json", action="store_true", help="print one JSON object with the files written")
     e.set_defaults(func=cmd_export)
-
-
-def _status():
-    from rig.progress import StatusLine
-
-    return StatusLine()
 
 
 def cmd_board(args: argparse.Namespace) -> int:
@@ -158,260 +154,78 @@ def _write_failed(path, exc: OSError, what: str):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from calibration.boards import load_board
-    from calibration.camera import CalibrationError
-    from calibration.images import find_images
     from calibration.report import format_report
-    from calibration.solve import calibrate_rig
+    from rig.calibrate.run import UnusableCalibration, calibrate_images, run_inputs
     from rig.commands._output import emit_json
-    from rig.config import load_config
-    from rig.errors import ConfigError, StorageError
 
-    if not args.outlier_px > 0:
-        raise ConfigError(f"--outlier-px must be positive, got {args.outlier_px}")
-    board = load_board(args.board)
-    images = find_images(args.images)
-    known = _known_intrinsics(args, images.cameras)
-    _check_fisheye(args, images.cameras)
-    from calibration.pairing import check_offsets, parse_offsets
-
-    offsets = parse_offsets(args.offset)
-    check_offsets(offsets, images.paths)  # before the detection, which takes minutes
-    prior = {}
-    if args.prior_sigma is not None:
-        from calibration.known import parse_prior, prior_sigmas
-
-        if not known:
-            raise ConfigError("--prior-sigma needs --intrinsics FILE (the values the priors are centred on)")
-        prior = parse_prior(args.prior_sigma)
-        for k in known.values():
-            prior_sigmas(k, prior)  # a term the camera's lens lacks is refused before the detection
-    roles = dict(images.roles)
-    if args.config:
-        cfg = load_config(args.config, check_calibration=False)
-        for role in ("left", "right"):
-            cam = cfg.by_role(role)
-            if cam is not None:
-                if cam.name not in images.cameras:
-                    raise ConfigError(f"{args.config}: its {role} camera '{cam.name}' has no images in {args.images} "
-                                      f"(cameras: {', '.join(images.cameras)})")
-                roles[role] = cam.name
-    # Where the result goes is checked before the detection and the solve, which take minutes.
-    output, detections = _detect_for(args, images, board)
-    opts = _lens_options(args, left=args.left or roles.get("left"), right=args.right or roles.get("right"), known=known, prior=prior,
-                         lens_priors=not args.free_intrinsics, offsets=offsets, auto_offset=args.auto_offset)
-    status = _status()
-    result = calibrate_rig(detections, board, opts, progress=lambda s: status.update(s, force=True))
-    status.done()
-    rig = result.rig
-    rig.meta["images"] = str(Path(args.images).absolute())
-    unusable = _unusable_cameras(rig)
-    if unusable:  # a calibration no camera pair can use is not written, nor replaces one (--force)
+    inputs = run_inputs(args.images, args.board, _lens(args), config=args.config, left=args.left, right=args.right,
+                        intrinsics=args.intrinsics, hold=args.hold, prior_sigma=args.prior_sigma, offsets=args.offset,
+                        auto_offset=args.auto_offset, free_intrinsics=args.free_intrinsics)
+    output = _checked_output(args)
+    try:
+        result = calibrate_images(inputs, args.output)
+    except UnusableCalibration as exc:
         if not args.json:
-            print(format_report(rig))
-        raise CalibrationError(_unusable_message(rig, unusable, args.output))
-    written, why = save_keeping(rig, output)
-    meta = rig.meta
+            print(format_report(exc.rig))
+        raise
     if args.json:
-        emit_json({
-            "output": str(written) if written else None,
-            "requested_output": str(args.output),
-            "cameras": rig.names,
-            "views_used": meta["views_used"],
-            "views_found": {c: len(detections.corners[c]) for c in rig.names},
-            "images": detections.images_seen,
-            "rms_px": meta["rms_px"],
-            "stereo_rms_px": meta["stereo_rms_px"],
-            "baseline_m": meta["baseline_m"],
-            "epipolar_rms_px": (meta["report"]["stereo"] or {}).get("epipolar_rms_px"),
-            "stereo_pair": meta["stereo_pair"],
-            "intrinsics": {c.name: {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "dist": c.dist.tolist(), "model": c.model}
-                           for c in rig.cameras},
-            # every camera in the rig frame (the left camera's): world-to-camera R, t (metres)
-            "per_camera": {c.name: {"K": c.K.tolist(), "dist": c.dist.tolist(), "model": c.model, "R": c.R.tolist(), "t": c.t.tolist(),
-                                        "width": c.width, "height": c.height, "rms_px": meta["rms_px"].get(c.name),
-                                        "verdict": meta["report"]["cameras"][c.name].get("verdict"),
-                                        "reasons": meta["report"]["cameras"][c.name].get("reasons"),
-                                        "focal_spread_pct": meta["report"]["cameras"][c.name].get("focal_spread_pct")}
-                               for c in rig.cameras},
-            "rejected": meta["rejected"],
-            "pairing": meta["report"].get("pairing", []),
-            "warnings": meta["report"]["warnings"],
-            **({"calibration": rig.to_dict()} if written is None else {}),
-        })
+        emit_json(result.summary())
     else:
-        print(format_report(rig))
-        if written == output:
+        print(format_report(result.rig))
+        if result.written == output:
             print(f"\nwrote {output}")
-        elif written is None:
-            print(json.dumps(rig.to_dict(), indent=2))
-    if why is not None:
-        kept = f"the result is kept in {written}; move it where you want it" if written else \
-            "it could not be written anywhere either and was printed on stdout"
-        raise StorageError(f"{args.output}: could not write the calibration ({why}); {kept}")
+        elif result.written is None:
+            print(json.dumps(result.rig.to_dict(), indent=2))
+    failed = result.write_error()
+    if failed is not None:
+        raise failed
     return 0
 
 
-def _unusable_cameras(rig) -> list[str]:
-    """The cameras whose verdict is `unusable` (their corners fit no lens model in the joint solve)."""
-    cams = rig.meta["report"]["cameras"]
-    return [n for n in rig.names if cams.get(n, {}).get("verdict") == "unusable"]
+def _lens(args: argparse.Namespace):
+    """The lens flags of `run` and `intrinsics`."""
+    from rig.calibrate.lens import LensChoices
+
+    return LensChoices(outlier_px=args.outlier_px, k3=args.k3, tangential=args.tangential, square_pixels=args.fix_aspect,
+                       centred=args.fix_principal_point, fisheye=tuple(args.fisheye or ()))
 
 
-def _unusable_message(rig, unusable: list[str], output) -> str:
-    from calibration.quality import RMS_UNUSABLE_PX
-
-    rms = ", ".join(f"'{n}' {rig.meta['rms_px'][n]:.2f} px" for n in unusable)
-    stalled = any("did not converge" in w for w in rig.meta["report"]["warnings"])
-    return (f"the calibration is unusable: reprojection RMS {rms} (above {RMS_UNUSABLE_PX:g} px)"
-            f"{'; the joint adjustment did not converge' if stalled else ''}; nothing was written to {output}. "
-            "Check that the board file describes the board shown (its size, in the board's orientation) "
-            "and that every camera's images of one instant share a name or number")
-
-
-def save_keeping(rig, output: Path) -> tuple[Path | None, str | None]:
-    """Write the calibration to `output`; a solve is never lost to a failed write (the disk filled up,
-    the folder went away during the solve): it is then kept beside as NAME.unsaved-TIME in the working
-    folder, else in the temporary folder. Returns (where it was written or None, why `output` failed
-    or None)."""
-    import tempfile
-    import time
-
-    try:
-        rig.save(output)
-        return output, None
-    except OSError as exc:
-        why = exc.strerror or str(exc)
-    name = f"{output.name}.unsaved-{time.strftime('%Y%m%d-%H%M%S')}"
-    for folder in (Path.cwd(), Path(tempfile.gettempdir())):
-        try:
-            rig.save(folder / name)
-            return folder / name, why
-        except OSError:
-            continue
-    return None, why
-
-
-def _lens_options(args: argparse.Namespace, **more):
-    """The solver options the lens flags of `run` and `intrinsics` give."""
-    from calibration.solve import Options
-
-    choice = {"auto": None, "hold": True, "fit": False}
-    fisheye = args.fisheye or ()
-    return Options(outlier_px=args.outlier_px, fix_k3=choice[args.k3], fix_tangential=choice[args.tangential],
-                   square_pixels=args.fix_aspect, centred=args.fix_principal_point,
-                   fisheye=True if "*" in fisheye else frozenset(fisheye), **more)
-
-
-def _check_fisheye(args: argparse.Namespace, cameras: list[str]) -> None:
-    from rig.errors import ConfigError
-
-    for name in args.fisheye or ():
-        if name != "*" and name not in cameras:
-            raise ConfigError(f"--fisheye {name}: no images of camera '{name}' (cameras: {', '.join(cameras)})")
-
-
-def _detect_for(args: argparse.Namespace, images, board):
-    """Check the output file, then detect the board in every image (minutes: after every check of
-    the input). Returns (output path, detections)."""
-    from calibration.images import detect_images
+def _checked_output(args: argparse.Namespace) -> Path:
+    """The output file, checked before the detection and the solve, which take minutes."""
     from rig.commands._paths import output_file
     from rig.errors import ConfigError
 
     if Path(args.output).is_file() and not args.force:
         raise ConfigError(f"{args.output}: already exists; choose a new name, or replace it with --force (nothing was overwritten)")
-    output = output_file(args.output)
-    status = _status()
-    detections = detect_images(images, board, progress=lambda i, n: status.update(f"detecting the board: {i}/{n} images"))
-    status.done()
-    return output, detections
-
-
-def _known_intrinsics(args: argparse.Namespace, cameras: list[str]) -> dict:
-    """The intrinsics `--intrinsics` gives for the cameras to hold (`--hold`, default all it has)."""
-    from calibration.known import load_known
-    from rig.errors import ConfigError
-
-    if args.intrinsics is None:
-        if args.hold:
-            raise ConfigError("--hold needs --intrinsics FILE")
-        return {}
-    known = load_known(args.intrinsics)
-    names = args.hold or [c for c in cameras if c in known]
-    for name in names:
-        if name not in known:
-            raise ConfigError(f"--hold {name}: {args.intrinsics} has no camera '{name}' (it has: {', '.join(known)})")
-        if name not in cameras:
-            raise ConfigError(f"--hold {name}: no images of camera '{name}' (cameras: {', '.join(cameras)})")
-    if not names:
-        raise ConfigError(f"{args.intrinsics}: none of its cameras ({', '.join(known)}) has images here (cameras: {', '.join(cameras)})")
-    return {n: known[n] for n in names}
+    return output_file(args.output)
 
 
 def cmd_intrinsics(args: argparse.Namespace) -> int:
-    from calibration.boards import load_board
-    from calibration.camera import CalibrationError
-    from calibration.images import find_camera_images
-    from calibration.intrinsics import calibrate_camera
-    from common.files import atomic_write_json
+    from rig.calibrate.intrinsics import calibrate_lenses, intrinsics_inputs
     from rig.commands._output import emit_json
-    from rig.errors import ConfigError
 
-    if not args.outlier_px > 0:
-        raise ConfigError(f"--outlier-px must be positive, got {args.outlier_px}")
-    board = load_board(args.board)
-    images = find_camera_images(args.images, args.camera)
-    _check_fisheye(args, images.cameras)
-    output, detections = _detect_for(args, images, board)
-    opts = _lens_options(args)
-    status = _status()
-    object_points = board.object_points()[1]
-    results, failed = {}, {}
-    for name in images.cameras:
-        status.update(f"calibrating {name}", force=True)
-        try:
-            r = calibrate_camera(name, detections.image_size[name], detections.corners.get(name, {}), object_points, opts)
-        except CalibrationError as exc:
-            failed[name] = str(exc)
-            continue
-        if r.verdict == "unusable":  # no intrinsics for it: listed in `failed` with why
-            failed[name] = (f"camera '{name}': reprojection RMS {r.rms_px:.2f} px over {len(r.views_used)} views: the corners fit no lens "
-                            "model (is the board file the board shown: its size, orientation and squares? a moving board?)")
-        else:
-            results[name] = r
-    status.done()
-    cams = {}
-    for n, r in results.items():
-        cams[n] = r.to_dict()
-        # every image that gave no view says why, like every rejected view
-        cams[n]["not_found"] = [v for v in sorted(images.paths[n]) if v not in detections.corners.get(n, {})]
-    doc = {"format": "rig-intrinsics", "version": 1, "board": board.to_dict(), "images": str(Path(args.images).absolute()),
-           "cameras": cams,
-           "failed": failed}
-    if not results:  # one error (one JSON object with --json), nothing written
-        raise CalibrationError("no camera could be calibrated: " + "; ".join(failed.values()))
-    try:
-        atomic_write_json(output, doc, make_parents=True)
-    except OSError as exc:
-        raise _write_failed(args.output, exc, "the intrinsics") from None
+    inputs = intrinsics_inputs(args.images, args.board, _lens(args), args.camera)
+    output = _checked_output(args)
+    result = calibrate_lenses(inputs, output)
     if args.json:
-        emit_json({"output": str(output), **doc})
-    else:
-        for name, r in results.items():
-            d = r.to_dict()
-            spread = "not measured" if d["focal_spread_pct"] is None else f"{d['focal_spread_pct']:.2f} %"
-            print(f"{name}: {'fisheye ' if r.model == 'fisheye' else ''}fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} cy {d['cy']:.1f}  RMS {d['rms_px']:.3f} px  "
-                  f"views {d['views_used']}/{d['views_found']} of {detections.images_seen.get(name)} images  focal spread {spread}  "
-                  f"coverage {100 * d['coverage']:.0f} %  -> {r.verdict}")
-            for reason in r.reasons:
-                print(f"  {r.verdict}: {reason}")
-            for rej in r.rejected:
-                print(f"  rejected {rej.view}: {rej.reason}")
-            for view in cams[name]["not_found"]:
-                print(f"  rejected {view}: the board was not found in the image")
-        for name, why in failed.items():
-            print(f"{name}: unusable: {why}")
-        print(f"\nwrote {output}")
+        emit_json({"output": str(output), **result.doc})
+        return 0
+    cams = result.doc["cameras"]
+    for name, r in result.results.items():
+        d = cams[name]
+        spread = "not measured" if d["focal_spread_pct"] is None else f"{d['focal_spread_pct']:.2f} %"
+        print(f"{name}: {'fisheye ' if r.model == 'fisheye' else ''}fx {d['fx']:.1f} fy {d['fy']:.1f} cx {d['cx']:.1f} cy {d['cy']:.1f}  RMS {d['rms_px']:.3f} px  "
+              f"views {d['views_used']}/{d['views_found']} of {result.detections.images_seen.get(name)} images  focal spread {spread}  "
+              f"coverage {100 * d['coverage']:.0f} %  -> {r.verdict}")
+        for reason in r.reasons:
+            print(f"  {r.verdict}: {reason}")
+        for rej in r.rejected:
+            print(f"  rejected {rej.view}: {rej.reason}")
+        for view in d["not_found"]:
+            print(f"  rejected {view}: the board was not found in the image")
+    for name, why in result.failed.items():
+        print(f"{name}: unusable: {why}")
+    print(f"\nwrote {output}")
     return 0
 
 
@@ -496,7 +310,7 @@ def _take_images(rig, take: Path, set_number):
 def cmd_capture(args: argparse.Namespace) -> int:
     """Pull synchronised frame sets from the rig, keep those that add coverage, write DIR/CAMNAME/NNNN.png."""
     from calibration.boards import load_board
-    from rig.capture.calibration_views import capture_views, check_capture, still_settings
+    from rig.capture.calibration_views import capture_views, check_capture, stereo_roles, still_settings
     from rig.commands._paths import new_output_folder
     from rig.config import load_config
     from rig.errors import ConfigError
@@ -522,8 +336,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     limit = args.max_frames if session is None else min(args.max_frames, session.sets)
     if session is not None and not args.json:
         print(session.describe(), flush=True)
-    roles = {c.role: c.name for c in cfg.cameras if c.role in ("left", "right")}
-    summary = capture_views(settings, board, out, roles, args.views, limit, args.interval, args.timeout)
+    summary = capture_views(settings, board, out, stereo_roles(cfg.cameras), args.views, limit, args.interval, args.timeout)
     check_capture(summary, args.board, [s.name for s in settings])
     if args.json:
         from rig.commands._output import emit_json

@@ -161,10 +161,8 @@ def _calibrate(args: argparse.Namespace, session, rig_file: Path, board_file: Pa
     from calibration.compare import describe, errors_against_truth
 
     print(f"2/5  calibrating: {session.describe()}")
-    cap = step.run_command(["calibrate", "capture", "-c", str(rig_file), "--board", str(board_file), "-o", str(views_dir), "--views", str(views)])
-    # The simulated lenses are ordinary (62 degrees across, k3 = 0): k3 is held, as it should be for
-    # such lenses; p1 p2 are fitted (the simulator's lenses have them).
-    res = step.run_command(["calibrate", "run", "--images", str(views_dir), "--board", str(board_file), "-o", str(calib_file), "--k3", "hold"])
+    cap = step.calibration_views(rig_file, board_file, views_dir, views)
+    res = step.calibrate(views_dir, board_file, calib_file)
     calib = RigCalibration.load(calib_file)
     errs = errors_against_truth(calib, session.truth)  # both in the calibration's frame (its left camera's)
     print(f"     kept {cap.get('views_kept')} views; RMS {', '.join(f'{k} {v:.2f}' for k, v in res['rms_px'].items())} px; "

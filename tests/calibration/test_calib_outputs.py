@@ -18,7 +18,7 @@ from calibration.camera import RigCalibration, intrinsics_from_fov
 from calibration.geometry import rodrigues
 from calibration.synthetic import arc_rig, warp_board
 from rig.cli import main
-from rig.commands.calibrate import save_keeping
+from rig.calibrate.run import save_keeping
 
 REPO = Path(__file__).resolve().parents[2]
 UNWRITABLE = "/proc/rig-calibrate-test"  # nobody, root included, can create anything under /proc
