@@ -122,7 +122,9 @@ class TriggerBoardEmulator:
         self._pulse_outputs.append(fn)
 
     def add_led_output(self, fn: Callable[[bool, int], None]) -> None:
-        """Connect something that sees the LED: fn(on, host_ns)."""
+        """Connect something that sees the LED: fn(on, host_ns), the LED's state from host_ns on. A
+        flash tells its start and its end at once, as the firmware sets its timer then: a camera
+        drawing a frame right after the flash ended must not see it lit because a thread woke late."""
         self._led_outputs.append(fn)
 
     @property
@@ -320,25 +322,17 @@ class TriggerBoardEmulator:
             end_ns = self.clock.host_ns(now_us + ms * 1000)
             start_ns = self.clock.host_ns(now_us)
             self.flashes.append(FlashTruth(now_us, start_ns, end_ns))
+            lit_until = self.led_off_ns if self.led_off_ns is not None and start_ns < self.led_off_ns < end_ns else None
             self.led_off_ns = end_ns
             self._send("OK", n, remember=True)
             self._send("FLASH", now_us, ms)
             for fn in list(self._led_outputs):
                 fn(True, start_ns)
-            threading.Thread(target=self._led_off, args=(end_ns,), daemon=True).start()
+                if lit_until is not None:  # a flash still lit is extended: the end told for it does not come
+                    fn(True, lit_until)
+                fn(False, end_ns)
         elif kind == "STATUS":
             self._send("STATUS", n, int(self.train_active), self.rate_mhz, self.width_us, self.next_index, self.bad_lines, remember=True)
-
-    def _led_off(self, end_ns: int) -> None:
-        delay = (end_ns - time.monotonic_ns()) / 1e9
-        if delay > 0:
-            time.sleep(delay)
-        with self._lock:
-            if self.led_off_ns != end_ns:
-                return  # a later flash extended it
-            self.led_off_ns = None
-        for fn in list(self._led_outputs):
-            fn(False, end_ns)
 
     def _finish_train_if_over(self) -> None:
         # DONE follows the report of every fired pulse, as on the firmware

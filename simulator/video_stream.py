@@ -5,10 +5,14 @@
     server = MjpegHttpServer(render, 640, 360, 15.0); server.start(); server.url   # multipart MJPEG
 
 `render(t)` gives the frame (HxWx3 uint8 RGB) of the instant `t`: `t0` plus the seconds since the
-stream started (pass `t0` to put the stream on the simulated scene's clock). Frames go out in real
+stream started. To put the stream on another clock's timeline (the simulated scene's), pass `clock`:
+`t0` is then that clock's reading at the stream's start, taken by the streaming thread itself, so
+frame k shows exactly the instant it was exposed over, however late the thread got going. Frames go out in real
 time on an absolute schedule (frame k at start + k / fps, so the rate never drifts); a frame whose
 time has passed while the previous one was made is skipped, as a camera that cannot keep up drops
-frames. Each frame's presentation time is its index in 1/fps units, so a receiver recovers when it
+frames. An emulated camera that only falls behind because its host is busy (a real one would not)
+passes `late_s`: frames up to that late are still made and sent, in a burst, as a link that
+delivers late does. Each frame's presentation time is its index in 1/fps units, so a receiver recovers when it
 was taken.
 """
 from __future__ import annotations
@@ -31,7 +35,8 @@ class UdpTsStreamer:
     """MPEG-TS (H.264, or another codec PyAV has) over UDP to host:port, in real time."""
 
     def __init__(self, render: Render, width: int, height: int, fps: float, host: str = "127.0.0.1",
-                 port: int = 8554, codec: str = "h264", *, t0: float = 0.0, bitrate: int = 4_000_000):
+                 port: int = 8554, codec: str = "h264", *, t0: float = 0.0, bitrate: int = 4_000_000,
+                 clock: Optional[Callable[[], float]] = None, late_s: Optional[float] = None):
         if not (width > 0 and height > 0 and width % 2 == 0 and height % 2 == 0):
             raise ValueError(f"stream size must be positive and even, got {width}x{height}")
         if not 0 < fps <= 240:
@@ -40,6 +45,8 @@ class UdpTsStreamer:
             raise ValueError(f"UDP port must be 1-65535, got {port}")
         self.render, self.width, self.height, self.fps = render, int(width), int(height), float(fps)
         self.host, self.port, self.codec, self.t0, self.bitrate = host, int(port), codec, float(t0), int(bitrate)
+        self.clock = clock
+        self.late_s = 1.0 / self.fps if late_s is None else float(late_s)
         self.frames_sent = 0
         self.frames_skipped = 0
         self.started_at: Optional[float] = None  # time.monotonic() of frame 0
@@ -107,6 +114,8 @@ class UdpTsStreamer:
             ready.set()
             return
         self.started_at = time.monotonic()
+        if self.clock is not None:  # the schedule's origin on that clock: frame k covers t0 + [k, k + 1] / fps
+            self.t0 = float(self.clock())
         ready.set()
         k = 0
         key_next = False
@@ -116,7 +125,7 @@ class UdpTsStreamer:
                 wait = due - time.monotonic()
                 if wait > 0 and self._stop.wait(wait):
                     break
-                if time.monotonic() - due > 1.0 / self.fps:  # this frame's time has passed: skip it
+                if time.monotonic() - due > self.late_s:  # this frame's time has passed: skip it
                     self.frames_skipped += 1
                     k += 1
                     continue

@@ -25,6 +25,11 @@ Behaviour, as the specification describes a camera:
 `pattern.time_code_pattern` (a colour of the serial's, the time written along the top).
 `media_render(t)` (default: `render`) draws the photos and videos written to the card: a video
 started at `clock()` = t0 shows `media_render(t0 + k / fps)` in frame k (`recordings` keeps t0).
+With `stream_on_clock`, the webcam stream is on `clock` too: frame k shows `render(t0 + k / fps)`,
+t0 being `clock()` when the stream's schedule began (`stream_t0`), as a camera stamps a frame when
+it exposes it, not when its encoder gets round to it; without, `render(k / fps)`. A camera does not
+drop frames because its host is busy: frames the emulator makes late (up to `STREAM_LATE_S`) are
+sent late, in a burst, not skipped.
 Timers (busy, keep-alive, faults) run on the host monotonic clock.
 """
 from __future__ import annotations
@@ -52,6 +57,7 @@ from simulator.gopro.media import MediaFile, MediaStore, Recording, VideoWriter,
 from simulator.gopro.pattern import time_code_pattern
 
 DEFAULT_WEBCAM_PORT = 8554
+STREAM_LATE_S = 1.0  # how far behind its schedule the emulator's stream may fall before it skips frames
 _SERIAL = re.compile(r"[A-Za-z0-9]*[0-9]{3}")
 
 
@@ -100,7 +106,7 @@ class GoProEmulator:
                  media_size: Optional[tuple[int, int]] = None, keep_alive_timeout_s: Optional[float] = 10.0,
                  busy_s: float = 0.2, photo_s: float = 0.5, stream_codec: str = "h264",
                  download_bytes_per_s: Optional[float] = None, clock: Callable[[], float] = time.monotonic,
-                 media_render: Optional[Callable[[float], np.ndarray]] = None):
+                 media_render: Optional[Callable[[float], np.ndarray]] = None, stream_on_clock: bool = False):
         if not isinstance(serial, str) or not _SERIAL.fullmatch(serial):
             raise SimulatorError(f"GoPro emulator: serial {serial!r} must be letters and digits ending in three digits "
                                  "(e.g. C3501324645504): the USB address comes from them")
@@ -120,6 +126,8 @@ class GoProEmulator:
         self._frames_sent_before = 0
         self.download_bytes_per_s = download_bytes_per_s
         self.clock = clock
+        self.stream_on_clock = bool(stream_on_clock)
+        self._stream_t0: Optional[float] = None
 
         self.state = CameraState(self.width, self.height, self.fps)
         self.faults = Faults(time.monotonic)
@@ -411,11 +419,19 @@ class GoProEmulator:
         from simulator.video_stream import UdpTsStreamer
 
         self._stop_stream()
-        streamer = UdpTsStreamer(self.render, self.width, self.height, self.fps, host, port, self.stream_codec)
+        streamer = UdpTsStreamer(self.render, self.width, self.height, self.fps, host, port, self.stream_codec,
+                                 clock=self.clock if self.stream_on_clock else None, late_s=STREAM_LATE_S)
         streamer.start()
+        self._stream_t0 = streamer.t0
         if (down := self.faults.link_down_for()) > 0:
             streamer.silence(down)
         self._streamer = streamer
+
+    @property
+    def stream_t0(self) -> Optional[float]:
+        """The instant frame 0 of the current (or last) webcam stream shows: `clock()` when its
+        schedule began with `stream_on_clock`, else 0.0; None before any stream."""
+        return self._stream_t0
 
     def _stop_stream(self) -> None:
         with self._lock:

@@ -7,8 +7,11 @@
 Each emulator's webcam stream shows the scene from where its camera stands on the simulated rig
 (simulator.sensor.SimRig), with the trigger board's LED when the scene has one, at a 1/fps shutter
 as a video camera's. Frame k of a stream shows the instant t0 + k / fps of the simulated clock
-(host monotonic ns minus `epoch_ns`, as the sim:// cameras count), t0 being when the stream began:
-`stream_start(emulator)` says it once the stream runs, so a test can know each frame's true time.
+(host monotonic ns minus `epoch_ns`, as the sim:// cameras count), t0 being when the stream's
+schedule began (read by the streaming thread as it starts it, so a loaded host that draws frame 0
+late, or skips it, does not move the stream's timeline): `stream_start(emulator)` says it once the
+stream runs, so a test can know each frame's true time. A frame is drawn once its exposure is over,
+so the LED's edges within it have happened.
 
 A video the emulator records to its card on the shutter (`?record=card` cameras) is on the simulated
 clock too: the emulator's clock is the simulated one, so its `recordings` say the simulated instant
@@ -50,25 +53,15 @@ def scene_emulators(config, epoch_ns: int, *, advertise: bool = False, **options
             sensor.prerender(exposure_s)  # now, not in the stream's first frame
             source = sensor.image_source()
             rng = np.random.default_rng(abs(hash(serial)) % (1 << 32))
-            state = {"t0": None}
 
-            def render(t: float, source=source, exposure_s=exposure_s, rng=rng, state=state, cam_fps=cam.fps) -> np.ndarray:
-                # the stream asks for frame k, showing t = k / fps from its start, at (k + 1) / fps:
-                # pin its start to the simulated clock
-                if state["t0"] is None or t == 0.0:
-                    state["t0"] = (time.monotonic_ns() - epoch_ns) / 1e9 - 1.0 / cam_fps
-                return source(state["t0"] + t, exposure_s, rng)
-
-            def media_render(t: float, source=source, exposure_s=exposure_s, rng=rng) -> np.ndarray:
+            def render(t: float, source=source, exposure_s=exposure_s, rng=rng) -> np.ndarray:
                 return source(t, exposure_s, rng)  # t: the simulated instant itself (the emulator's clock)
 
             def scene_clock() -> float:
                 return (time.monotonic_ns() - epoch_ns) / 1e9
 
             emu = GoProEmulator(serial, render=render, width=cam.width, height=cam.height, fps=cam.fps, host=host,
-                                http_port=port, advertise=advertise, clock=scene_clock, media_render=media_render,
-                                **options)
-            emu.scene_clock = state
+                                http_port=port, advertise=advertise, clock=scene_clock, stream_on_clock=True, **options)
             emulators.append(emu.start())
     except BaseException:
         for emu in emulators:
@@ -79,4 +72,4 @@ def scene_emulators(config, epoch_ns: int, *, advertise: bool = False, **options
 
 def stream_start(emulator: GoProEmulator) -> Optional[float]:
     """The simulated time frame 0 of the emulator's current stream shows (None before it streams)."""
-    return getattr(emulator, "scene_clock", {}).get("t0")
+    return emulator.stream_t0

@@ -371,6 +371,38 @@ def test_two_webcams_stream_their_own_frames_to_their_own_ports(tmp_path):
             sink.close()
 
 
+def test_a_stream_on_the_scene_clock_shows_each_frame_when_it_was_exposed_however_late_it_is_drawn(tmp_path):
+    """A busy host draws the stream's first frame 0.3 s late (4.5 frame periods): frame k still shows
+    t0 + k / fps, t0 the stream's start, none is skipped, and none is drawn before its exposure
+    is over (an LED edge within it has then happened)."""
+    calls: list[tuple[float, float]] = []  # (instant shown, when drawn)
+
+    def render(t: float) -> np.ndarray:
+        if not calls:
+            time.sleep(0.3)
+        calls.append((t, time.monotonic()))
+        return np.zeros((180, 320, 3), np.uint8)
+
+    sink = UdpSink()
+    cam = GoProEmulator("C3501324645507", render, width=320, height=180, fps=15.0, advertise=False,
+                        media_dir=tmp_path, stream_on_clock=True)
+    try:
+        cam.start()
+        before = time.monotonic()
+        assert get(cam, "/gopro/webcam/start", params={"port": sink.port, "protocol": "TS"}).json()["error"] == 0
+        time.sleep(1.2)
+        get(cam, "/gopro/webcam/stop")
+    finally:
+        cam.stop()
+        sink.close()
+    t0 = cam.stream_t0
+    assert t0 is not None and before <= t0 < calls[0][1] - 0.3
+    k = [(t - t0) * 15.0 for t, _ in calls]
+    assert np.allclose(k, np.round(k), atol=1e-6) and [int(round(x)) for x in k] == list(range(len(k))), k
+    assert all(drawn >= t + 1 / 15.0 - 1e-3 for t, drawn in calls)
+    assert len(decode_ts(sink.data())) >= len(calls) - 1
+
+
 def test_webcam_parameters_and_states(camera):
     sink = UdpSink()
     try:
