@@ -45,13 +45,21 @@ def gopro_rig(n_gopros: int, width: int, height: int, fps: float) -> dict:
 
 
 def alignment_truth(take: Path, cameras: list, starts: dict[str, float]) -> dict[str, dict]:
-    """Per GoPro: how many of its frames the aligned index puts on their true pulse, and the largest
-    error of their sub-frame offsets (pulse periods). The truth: a GoPro frame's device time is its
-    stream's presentation time, frame k showing the simulated instant t0 + k / fps (t0: `starts`,
-    by serial); the pulses' simulated times come from the hardware-triggered left camera's frames."""
+    """Per GoPro: how many of its frames the aligned index puts in the wrong set, and the largest
+    error of their places (pulse plus offset, in pulse periods). The truth: a GoPro frame's device
+    time is its stream's presentation time, frame k showing the simulated instant t0 + k / fps (t0:
+    `starts`, by serial); the pulses' simulated times come from the hardware-triggered left camera's
+    frames.
+
+    A frame is in the wrong set when it lies further from its set's pulse than half-way to the next
+    plus the uncertainty the alignment states (alignment.json): a frame exposed within that of
+    half-way between two pulses may go to either, its offset saying where it lies (a 15 fps GoPro
+    against 30 Hz pulses keeps its phase through a take, and that phase can be anything)."""
+    from rig.storage.align import REPORT
     from rig.storage.layout import INDEX
 
     rows = [json.loads(line) for line in (take / INDEX).read_text().splitlines() if line.strip()]
+    stated = json.loads((take / REPORT).read_text()).get("cameras", {}) if (take / REPORT).is_file() else {}
     hw = np.array([(r["trigger"], r["frames"]["left"]["device_ts_ns"]) for r in rows if r["frames"].get("left")], dtype=np.float64)
     ns_per_pulse, at_zero = np.polyfit(hw[:, 0], hw[:, 1], 1)
     out = {}
@@ -60,19 +68,17 @@ def alignment_truth(take: Path, cameras: list, starts: dict[str, float]) -> dict
         if t0 is None:
             out[cam.name] = {"frames": 0, "wrong_set": 0, "offset_error_max": None}
             continue
+        error = (stated.get(cam.name) or {}).get("error_periods") or 0.0
         wrong = n = 0
         worst = 0.0
         for r in rows:
             f = r["frames"].get(cam.name)
             if f is None or f.get("offset") is None:
                 continue
-            pos = (t0 * 1e9 + f["device_ts_ns"] - at_zero) / ns_per_pulse
-            nearest = int(np.floor(pos + 0.5))
+            after = (t0 * 1e9 + f["device_ts_ns"] - at_zero) / ns_per_pulse - r["trigger"]  # periods after its set's pulse
             n += 1
-            if nearest != r["trigger"]:
-                wrong += 1
-            else:
-                worst = max(worst, abs((pos - nearest) - f["offset"]))
+            wrong += abs(after) > 0.5 + error
+            worst = max(worst, abs(after - f["offset"]))
         out[cam.name] = {"frames": n, "wrong_set": wrong, "offset_error_max": worst if n else None}
     return out
 

@@ -5,13 +5,22 @@ take the trigger board flashed its LED in their view (`rig record` fires a flash
 and one near the end: the take's `flashes.jsonl`, each with its place on the trigger axis). Here,
 for each such camera:
 
-1. the frames around each flash give the flash's onset on the camera's own clock, to a fraction
-   of a frame (sync.alignment.find_flash: a frame the flash starts halfway through is half lit);
+1. the frames exposed around each flash (chosen by their own timestamps, tied to the host clock
+   by the camera's least delay: on a loaded host frames arrive seconds late and in bursts, so by
+   arrival the frames near a flash can be another flash's) give the flash's onset on the camera's
+   own clock, to a fraction of a frame (sync.alignment.find_flash: a frame the flash starts
+   halfway through is half lit);
 2. the onsets and the flashes' places on the trigger axis give a line from the camera's clock to
    the axis (two flashes: its offset and its rate; one: its offset at the nominal rate);
 3. every frame of the camera goes to the pulse nearest its exposure start on that line, with its
    offset from it in pulse periods (-0.5 .. 0.5), and the index is rewritten so that each set holds
    the camera's frame of its own pulse (null where the camera has none).
+
+A camera is left as it was, with the reason as its `problem`, when a flash cannot be found, when the
+flashes give a clock rate more than 1 % off (one was matched to the wrong flash), when its timestamps
+go back (its stream started again during the take: two clocks), or when the flashes place its frames
+only to half a pulse period or worse (frames missing around a flash): its frames are then never put
+in a set that may be the wrong one.
 
 The index as it was is kept beside it (`index.before-align-<UTC>.jsonl`, as `rig record repair`
 does), and `alignment.json` records what was found per camera: the flashes' onsets and their
@@ -43,9 +52,16 @@ from sync.errors import SyncError
 
 BACKUP_PREFIX = "index.before-align-"
 REPORT = "alignment.json"
-# Frames looked at around a flash, by host arrival: a free-running camera's frames reach the host
-# late (a GoPro's stream by a few hundred ms), never early.
+# Frames looked at around a flash: those exposed from BEFORE_S before it to AFTER_S after its end,
+# on the host clock as the camera's least delay puts them (a GoPro's frames reach the host a few
+# hundred ms after their exposure at best; AFTER_S leaves room for that and the frames after it).
 BEFORE_S, AFTER_S = 0.5, 1.5
+# The least delay is taken over the frames that arrived this close to the flash, so that the camera
+# clock's drift against the host's over a long take does not move the window.
+DELAY_SPAN_S = 60.0
+# A camera whose frames the flashes place only to half a pulse period or worse is not aligned:
+# any of its frames could land in a neighbouring set.
+MAX_ERROR_PERIODS = 0.5
 
 
 @dataclass
@@ -148,13 +164,27 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
     if len(frames) < 3:
         result.problem = f"{len(frames)} frames with timestamps in the take: too few to align"
         return result, None
+    restart = _clock_restart(frames)
+    if restart is not None:
+        result.problem = restart
+        return result, None
     period_ns = 1e9 / rate_hz
     fps = float(getattr(cfg, "fps", 0) or rate_hz)
     exposure_ns = float(getattr(cfg, "exposure_us", 0) or 0) * 1e3 or 1e9 / fps
+    device = np.array([rec["device_ts_ns"] for rec, _ in frames.values()], dtype=np.float64)
+    host = np.array([rec["host_ts_ns"] for rec, _ in frames.values()], dtype=np.float64)
+    files = [rec["file"] for rec, _ in frames.values()]
     points = []  # (onset on the camera's clock, place on the trigger axis, uncertainty ns)
     for f in flashes:
         lo, hi = f["host_ns"] - BEFORE_S * 1e9, f["host_ns"] + f["ms"] * 1e6 + AFTER_S * 1e9
-        near = sorted((rec["device_ts_ns"], rec["file"]) for rec, _ in frames.values() if lo <= rec["host_ts_ns"] <= hi)
+        # Not by arrival: on a loaded host a stream's frames come seconds late and in bursts, so the
+        # frames arriving around a flash can be another flash's, and its own may arrive after the
+        # window. A frame never arrives before it is exposed, so the least delay (host minus camera
+        # time) of the frames around the flash ties the camera's clock to the host's.
+        around = np.abs(host - f["host_ns"]) <= DELAY_SPAN_S * 1e9
+        least = float(np.min((host - device)[around] if around.any() else host - device))
+        pick = np.flatnonzero((device + least >= lo) & (device + least <= hi))
+        near = sorted((int(device[i]), files[i]) for i in pick)
         entry = {"trigger": f["trigger"], "frames": len(near)}
         try:
             if len(near) < 3:
@@ -181,6 +211,13 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
     stamps = [rec["device_ts_ns"] for rec, _ in frames.values()]
     # frames beyond the flashes take the rate's uncertainty along: the take's worst frame is stated
     result.rate_ppm, result.error_periods = fit.rate_ppm, fit.error_over(min(stamps), max(stamps))
+    if result.error_periods >= MAX_ERROR_PERIODS:
+        loose = [e for e in result.flashes if e.get("uncertainty_periods", 0) >= MAX_ERROR_PERIODS]
+        why = (f"the flash at trigger {loose[0]['trigger']:.2f} is pinned to {loose[0]['uncertainty_periods']:.2f} periods "
+               "(frames missing around it)" if loose else "the flashes disagree or lie close together")
+        result.problem = (f"the flashes place its frames only to {result.error_periods:.2f} pulse periods: {why}; "
+                          "its frames could go to a neighbouring set")
+        return result, None
     placement, delays = {}, []
     for frame_id, (rec, _) in frames.items():
         pos = float(fit.position(rec["device_ts_ns"]))
@@ -192,6 +229,18 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
         delays.append(rec["host_ts_ns"] - host_at)
     result.latency_ms = round(float(np.median(delays)) / 1e6, 3)
     return result, placement
+
+
+def _clock_restart(frames: dict[int, tuple[dict, Any]]) -> Optional[str]:
+    """Why the camera's timestamps are not one clock (its stream started again during the take, its
+    presentation times back at zero), or None: a line through the flashes holds for one clock only."""
+    ids = sorted(frames)
+    stamps = [frames[i][0]["device_ts_ns"] for i in ids]
+    for k in range(1, len(ids)):
+        if stamps[k] <= stamps[k - 1]:
+            return (f"its clock went back at frame {ids[k]} ({stamps[k - 1] / 1e9:.3f} s, then {stamps[k] / 1e9:.3f} s): "
+                    "its stream started again during the take, and one line through the flashes cannot place both parts")
+    return None
 
 
 def _regroup(rows: list[dict], name: str, placement: dict[int, tuple[int, float]], result: CameraAlignment) -> None:

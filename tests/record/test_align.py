@@ -125,3 +125,76 @@ def test_align_says_what_is_wrong_in_one_line(take, tmp_path):
     assert not list((tmp_path / "dark").glob("index.before-align-*"))
     (tmp_path / "dark" / "flashes.jsonl").unlink()  # a take recorded with --no-flash
     assert_one_line_error(run_rig("record", "align", tmp_path / "dark"), "no flashes.jsonl")
+
+
+def _copy_as_recorded(take: Path, dest: Path) -> Path:
+    """The take as `rig record` left it (its index before any alignment), its frames shared."""
+    dest.mkdir()
+    backups = sorted(take.glob("index.before-align-*"))
+    (dest / INDEX).write_bytes((backups[0] if backups else take / INDEX).read_bytes())
+    for name in ("flashes.jsonl", "sequence.json", "rig.toml"):
+        (dest / name).write_bytes((take / name).read_bytes())
+    (dest / "frames").symlink_to(take / "frames")
+    return dest
+
+
+def _rewrite(take: Path, camera: str, change) -> None:
+    """Each row's record of `camera` through change(rec) -> rec or None (the frame never arrived)."""
+    rows = [json.loads(line) for line in (take / INDEX).read_text().splitlines()]
+    for r in rows:
+        if r["frames"].get(camera) is not None:
+            r["frames"][camera] = change(r["frames"][camera])
+    (take / INDEX).write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def test_frames_that_reach_the_host_seconds_late_are_found_by_when_they_were_exposed(take, tmp_path):
+    # A loaded host falls behind decoding one camera's stream from just before the first flash on:
+    # its frames arrive as late as the second flash is after the first, and at least 2 s late (past
+    # the first flash's own frames' window by arrival). By arrival, the frames around the first
+    # flash are dark and those around the second are the first flash's: the first would be missed
+    # and the second found where the first is, a whole flash interval off, with nothing to say so.
+    copy = _copy_as_recorded(take, tmp_path / "late")
+    flashes = [json.loads(line) for line in (copy / "flashes.jsonl").read_text().splitlines()]
+    assert len(flashes) == 2
+    behind_from = flashes[0]["host_ns"] - 200_000_000
+    delay = max(flashes[1]["host_ns"] - flashes[0]["host_ns"], 2_000_000_000)
+    _rewrite(copy, "sup1", lambda rec: {**rec, "host_ts_ns": rec["host_ts_ns"] + delay * (rec["host_ts_ns"] >= behind_from)})
+    report = run_rig("record", "align", copy, "--json")
+    assert report.returncode == 0, report.stderr
+    cam = json.loads(report.stdout)["cameras"]["sup1"]
+    assert cam["problem"] is None and len([f for f in cam["flashes"] if "onset_ns" in f]) == 2, cam
+    wrong, worst, n = _truth_errors(copy)["sup1"]
+    assert n > 100 and not wrong and worst < 0.1, (wrong[:5], worst, n)
+
+
+def test_a_flash_the_frames_pin_only_loosely_leaves_the_camera_not_aligned(take, tmp_path):
+    # A take that got one flash, and the host kept one frame in four of a camera (its decoder fell
+    # behind): 133 ms apart, 30 ms exposures. Where both edges of the flash fall between exposures,
+    # every onset over 86 ms fits its frames equally well (1.3 pulse periods either way): any frame
+    # could go to the neighbouring set, and the camera must be reported not aligned, not placed.
+    full = _copy_as_recorded(take, tmp_path / "full")
+    report = run_rig("record", "align", full, "--json")
+    assert report.returncode == 0, report.stderr
+    onset = json.loads(report.stdout)["cameras"]["sup1"]["flashes"][0]["onset_ns"]
+    exposure_ns = 30e6
+    rows = [json.loads(line) for line in (full / sorted(full.glob("index.before-align-*"))[0].name).read_text().splitlines()]
+    starts = {r["frames"]["sup1"]["frame_id"]: r["frames"]["sup1"]["device_ts_ns"] for r in rows if r["frames"]["sup1"]}
+
+    def in_dead_time(residue: int) -> bool:  # neither edge of the first flash within 1 ms of a kept exposure
+        kept = [t for i, t in starts.items() if i % 4 == residue]
+        return all(not (t - 1e6 <= edge <= t + exposure_ns + 1e6) for t in kept for edge in (onset, onset + 150e6))
+
+    residue = next(r for r in range(4) if in_dead_time(r))  # an edge lies in at most one frame's exposure
+    copy = _copy_as_recorded(take, tmp_path / "thinned")
+    (copy / "flashes.jsonl").write_text((copy / "flashes.jsonl").read_text().splitlines()[0] + "\n")
+    _rewrite(copy, "sup1", lambda rec: rec if rec["frame_id"] % 4 == residue else None)
+    index = (copy / INDEX).read_bytes()
+    report = run_rig("record", "align", copy, "--json")
+    assert report.returncode == 1, report.stdout  # a camera left unaligned
+    cams = json.loads((copy / "alignment.json").read_text())["cameras"]
+    assert cams["sup1"]["problem"] and "neighbouring set" in cams["sup1"]["problem"], cams["sup1"]
+    assert cams["sup1"]["flashes"][0]["uncertainty_periods"] > 0.5 and cams["sup1"]["placed"] == 0
+    assert cams["sup2"]["problem"] is None  # the other camera is aligned, the unaligned one's frames untouched
+    rows = [json.loads(line) for line in (copy / INDEX).read_text().splitlines()]
+    before = [json.loads(line) for line in index.decode().splitlines()]
+    assert [r["frames"]["sup1"] for r in rows] == [r["frames"]["sup1"] for r in before]
