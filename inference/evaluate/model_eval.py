@@ -163,6 +163,129 @@ class _Take:
         return s
 
 
+class _Gathered:
+    """What an evaluation gathers over its frame sets, per pipeline, camera and take."""
+
+    def __init__(self) -> None:
+        self.per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
+        self.per_take: dict[str, dict[str, _Take]] = defaultdict(lambda: defaultdict(_Take.new))
+        self.exposure: dict[str, dict] = {}  # take -> person pixels, supervision pixels, nearest person depth
+        self.worst_view: dict[str, dict] = {}  # take -> the model's lowest-PSNR view in it
+        self.absrel: list[float] = []
+        self.absrel_person: list[float] = []
+        self.absrel_single: list[float] = []
+        self.view_absrel: list[float] = []
+        self.view_absrel_person: list[float] = []
+        self.split: list[tuple[float, float]] = []
+        self.scales: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
+
+    def stage1(self, affine, L, R, fs, source: FrameSource, pre: Preprocessor, sizes, take: str) -> dict:
+        """Stage 1's depth figures of one frame set against the sources' truth; returns that truth
+        at the coarse size (empty where a source has no depth)."""
+        if not all(fs.depth.get(c) is not None for c in (source.left, source.right)):
+            return {}
+        gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
+        set_absrel = stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
+        self.absrel += set_absrel
+        self.per_take["model"][take].depth_absrel.extend(set_absrel)
+        self.absrel_single += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, single=True)
+        self.split += stage1_scale_split(affine, L, R, fs, source, gt_coarse, sizes.coarse)
+        if all(fs.masks.get(c) is not None for c in (source.left, source.right)):
+            masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (source.left, source.right)}
+            self.absrel_person += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, masks)
+        return gt_coarse
+
+    def expose(self, take: str, fs) -> dict:
+        """The take's exposure record, with this set's nearest person depth in any camera."""
+        ex = self.exposure.setdefault(take, {"person_px": 0, "px": 0, "nearest": float("inf")})
+        for c, m in fs.masks.items():
+            if m is not None and m.any() and fs.depth.get(c) is not None:
+                ex["nearest"] = min(ex["nearest"], float(fs.depth[c][m & (fs.depth[c] > 0)].min(initial=np.inf)))
+        return ex
+
+    def score(self, name: str, take: str, sup: str, out: dict, target, mask, gt_view, person_absrel: Optional[list] = None) -> None:
+        """One pipeline's view in camera `sup`: image figures, and where it renders depth, the
+        vanished pixels and the depth error on the person mask."""
+        self.per_cam[name][sup].add(out["image"], target, mask)
+        t = self.per_take[name][take]
+        t.scores.add(out["image"], target, mask)
+        if "depth" in out and gt_view is not None and mask is not None:
+            off, counted = vanished_pixels(out["depth"], out["alpha"], gt_view, mask)
+            t.off += off
+            t.person += counted
+            err = view_depth_errors(out["depth"], out["alpha"], gt_view, mask)
+            if err.size:
+                t.person_absrel.append(float(err.mean()))
+                if person_absrel is not None:
+                    person_absrel.append(float(err.mean()))
+
+    def model_view(self, take: str, sup: str, index: int, fs, out: dict, target, mask, gt_view) -> None:
+        """The model's own view: scored, the take's worst view kept, its depth against the truth."""
+        self.score("model", take, sup, out, target, mask, gt_view, self.view_absrel_person)
+        last = self.per_take["model"][take].scores.psnr[-1]
+        if take not in self.worst_view or last < self.worst_view[take]["psnr"]:
+            self.worst_view[take] = {"frame_set_index": index, "set": fs.set, "camera": sup, "psnr": round(last, 4)}
+        if gt_view is not None:
+            view_err = view_depth_errors(out["depth"], out["alpha"], gt_view)
+            self.view_absrel.append(float(view_err.mean()) if view_err.size else float("nan"))
+
+    def scale_jitter(self) -> list[float]:
+        """Relative change of stage 1's scale between consecutive sets of each take."""
+        jitter = []
+        for rows in self.scales.values():
+            rows.sort()
+            for (a, sa), (b, sb) in zip(rows, rows[1:]):
+                jitter.append(float(np.mean(np.abs(sb - sa) / np.abs(sa))))
+        return jitter
+
+    def pipelines(self) -> dict:
+        """Per pipeline: overall and per-camera scores, vanished, per-take figures and their spread."""
+        out = {}
+        for name, cams in self.per_cam.items():
+            all_scores = _Scores.new()
+            for sc in cams.values():
+                all_scores.extend(sc)
+            takes = {}
+            off = person = 0
+            for take, t in self.per_take[name].items():
+                takes[take] = t.summary()
+                off, person = off + t.off, person + t.person
+                if name == "model":
+                    ex = self.exposure[take]
+                    takes[take]["person_share"] = round(ex["person_px"] / ex["px"], 5) if ex["px"] else None
+                    takes[take]["nearest_person_m"] = round(ex["nearest"], 3) if np.isfinite(ex["nearest"]) else None
+                    takes[take]["worst_view"] = self.worst_view.get(take)
+            figures = [f for f in TAKE_FIGURES if any(t.get(f) is not None for t in takes.values())]
+            out[name] = {"overall": all_scores.summary(), "cameras": {c: sc.summary() for c, sc in sorted(cams.items())},
+                         "vanished": round(off / person, 5) if person else None,
+                         "takes": takes, "spread": {f: spread([t[f] for t in takes.values()], TAKE_FIGURES[f]) for f in figures}}
+        return out
+
+    def result(self, sets: int, every: int, supervision: list) -> dict:
+        out = self.pipelines()
+        jitter = self.scale_jitter()
+        model_figures = out.pop("model", {})
+        absrel, split, view_absrel = self.absrel, self.split, self.view_absrel
+        return {
+            "sets": sets, "every": every, "supervision": list(supervision),
+            **model_figures,
+            "depth_absrel": round(float(np.mean(absrel)), 5) if absrel else None,
+            "depth_absrel_person": round(float(np.mean(self.absrel_person)), 5) if self.absrel_person else None,
+            "depth_absrel_single": round(float(np.mean(self.absrel_single)), 5) if self.absrel_single else None,
+            # The depth the model renders in each supervision camera against that camera's truth: what
+            # the image is drawn at, after depth init, refinement and splatting (stage 1's AbsRel above
+            # is on the sources' pixels both see; it misses what only one sees and what the target adds).
+            "view_depth_absrel": round(float(np.nanmean(view_absrel)), 5) if view_absrel else None,
+            "view_depth_absrel_person": round(float(np.mean(self.view_absrel_person)), 5) if self.view_absrel_person else None,
+            # Where stage 1's depth error lies: its scale per source and frame set (median depth over
+            # truth) and its shape (AbsRel once each is divided by that median).
+            "depth_scale": {"median_ratio_min": round(min(m for m, _ in split), 4), "median_ratio_max": round(max(m for m, _ in split), 4),
+                            "absrel_scale_free": round(float(np.mean([a for _, a in split])), 5)} if split else None,
+            "scale_jitter": {"mean": round(float(np.mean(jitter)), 6), "max": round(float(np.max(jitter)), 6), "pairs": len(jitter)} if jitter else None,
+            "references": out,
+        }
+
+
 @torch.no_grad()
 def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Optional[int] = None,
              references: bool = True, progress: Optional[Callable[[int, int], None]] = None,
@@ -186,17 +309,7 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
             twins["oracle"] = oracle_twin(model).to(device)
         twins.update({name: o.to(device).eval() for name, o in (oracles or {}).items()})
     picks = list(range(0, len(source), every))[: max_sets or None]
-    per_cam: dict[str, dict[str, _Scores]] = defaultdict(lambda: defaultdict(_Scores.new))
-    per_take: dict[str, dict[str, _Take]] = defaultdict(lambda: defaultdict(_Take.new))
-    exposure: dict[str, dict] = {}  # take -> person pixels, supervision pixels, nearest person depth
-    worst_view: dict[str, dict] = {}  # take -> the model's lowest-PSNR view in it
-    absrel: list[float] = []
-    absrel_person: list[float] = []
-    absrel_single: list[float] = []
-    view_absrel: list[float] = []
-    view_absrel_person: list[float] = []
-    split: list[tuple[float, float]] = []
-    scales: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
+    g = _Gathered()
     for n, index in enumerate(picks):
         fs = source.frame_set(index, with_truth=True)
         L = pre.views(fs, [source.left], sizes.fine).to(device)
@@ -205,25 +318,11 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
         _, affine, stage1 = model.run_stage1(L.images, R.images, L.K, R.K, L.poses, R.poses)
         seq, _, set_no = fs.key.rpartition("#")
         take = seq or "all"
-        scales[seq].append((int(set_no) if set_no.isdigit() else index, affine.scale[0].float().cpu().numpy().astype(np.float64)))
-        ex = exposure.setdefault(take, {"person_px": 0, "px": 0, "nearest": float("inf")})
-        for c, m in fs.masks.items():
-            if m is not None and m.any() and fs.depth.get(c) is not None:
-                ex["nearest"] = min(ex["nearest"], float(fs.depth[c][m & (fs.depth[c] > 0)].min(initial=np.inf)))
-        have_depth = all(fs.depth.get(c) is not None for c in (source.left, source.right))
-        gt_coarse = {}
-        if have_depth:
-            gt_coarse = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (source.left, source.right)}
-            set_absrel = stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse)
-            absrel += set_absrel
-            per_take["model"][take].depth_absrel.extend(set_absrel)
-            absrel_single += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, single=True)
-            split += stage1_scale_split(affine, L, R, fs, source, gt_coarse, sizes.coarse)
-            if all(fs.masks.get(c) is not None for c in (source.left, source.right)):
-                masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (source.left, source.right)}
-                absrel_person += stage1_absrel(affine, L, R, fs, source, gt_coarse, sizes.coarse, masks)
+        g.scales[seq].append((int(set_no) if set_no.isdigit() else index, affine.scale[0].float().cpu().numpy().astype(np.float64)))
+        ex = g.expose(take, fs)
+        gt_coarse = g.stage1(affine, L, R, fs, source, pre, sizes, take)
         twin_stage1 = {}
-        if references and have_depth:
+        if references and gt_coarse:
             depth_in = [torch.from_numpy(gt_coarse[c])[None, None].to(device) for c in (source.left, source.right)]
             twin_stage1 = {name: twin.run_stage1(L.images, R.images, L.K, R.K, L.poses, R.poses, *depth_in)[2] for name, twin in twins.items()}
         for sup in source.supervision:
@@ -235,79 +334,16 @@ def evaluate(model: SplatSAP, source: FrameSource, every: int = 1, max_sets: Opt
             ex["px"] += sizes.output[0] * sizes.output[1]
             gt_view = pre.depth(fs.depth[sup], fs.cameras[sup], sizes.output) if fs.depth.get(sup) is not None else None
             args = (L.images, R.images, L.K, R.K, L.poses, R.poses, T.K, T.poses)
-
-            def score(name: str, out: dict, person_absrel: Optional[list] = None) -> None:
-                per_cam[name][sup].add(out["image"], T.images, mask)
-                per_take[name][take].scores.add(out["image"], T.images, mask)
-                if "depth" in out and gt_view is not None and mask is not None:
-                    off, counted = vanished_pixels(out["depth"], out["alpha"], gt_view, mask)
-                    per_take[name][take].off += off
-                    per_take[name][take].person += counted
-                    err = view_depth_errors(out["depth"], out["alpha"], gt_view, mask)
-                    if err.size:
-                        per_take[name][take].person_absrel.append(float(err.mean()))
-                        if person_absrel is not None:
-                            person_absrel.append(float(err.mean()))
-
-            out = model.run_view(stage1, *args)
-            score("model", out, view_absrel_person)
-            last = per_take["model"][take].scores.psnr[-1]
-            if take not in worst_view or last < worst_view[take]["psnr"]:
-                worst_view[take] = {"frame_set_index": index, "set": fs.set, "camera": sup, "psnr": round(last, 4)}
-            if gt_view is not None:
-                view_err = view_depth_errors(out["depth"], out["alpha"], gt_view)
-                view_absrel.append(float(view_err.mean()) if view_err.size else float("nan"))
+            g.model_view(take, sup, index, fs, model.run_view(stage1, *args), T.images, mask, gt_view)
             if references:
                 for name, twin in twins.items():
                     if name in twin_stage1:
-                        score(name, twin.run_view(twin_stage1[name], *args))
+                        g.score(name, take, sup, twin.run_view(twin_stage1[name], *args), T.images, mask, gt_view)
                 nearer = min((source.left, source.right), key=lambda c: np.linalg.norm(fs.cameras[c].center - fs.cameras[sup].center))
-                score("nearest_source", {"image": pre.views(fs, [nearer], sizes.output).images.to(device)})
+                g.score("nearest_source", take, sup, {"image": pre.views(fs, [nearer], sizes.output).images.to(device)}, T.images, mask, gt_view)
         if progress is not None:
             progress(n + 1, len(picks))
-    jitter = []
-    for seq, rows in scales.items():
-        rows.sort()
-        for (a, sa), (b, sb) in zip(rows, rows[1:]):
-            jitter.append(float(np.mean(np.abs(sb - sa) / np.abs(sa))))
-    out = {}
-    for name, cams in per_cam.items():
-        all_scores = _Scores.new()
-        for sc in cams.values():
-            all_scores.extend(sc)
-        takes = {}
-        off = person = 0
-        for take, t in per_take[name].items():
-            takes[take] = t.summary()
-            off, person = off + t.off, person + t.person
-            if name == "model":
-                ex = exposure[take]
-                takes[take]["person_share"] = round(ex["person_px"] / ex["px"], 5) if ex["px"] else None
-                takes[take]["nearest_person_m"] = round(ex["nearest"], 3) if np.isfinite(ex["nearest"]) else None
-                takes[take]["worst_view"] = worst_view.get(take)
-        figures = [f for f in TAKE_FIGURES if any(t.get(f) is not None for t in takes.values())]
-        out[name] = {"overall": all_scores.summary(), "cameras": {c: sc.summary() for c, sc in sorted(cams.items())},
-                     "vanished": round(off / person, 5) if person else None,
-                     "takes": takes, "spread": {f: spread([t[f] for t in takes.values()], TAKE_FIGURES[f]) for f in figures}}
-    model_figures = out.pop("model", {})
-    return {
-        "sets": len(picks), "every": every, "supervision": list(source.supervision),
-        **model_figures,
-        "depth_absrel": round(float(np.mean(absrel)), 5) if absrel else None,
-        "depth_absrel_person": round(float(np.mean(absrel_person)), 5) if absrel_person else None,
-        "depth_absrel_single": round(float(np.mean(absrel_single)), 5) if absrel_single else None,
-        # The depth the model renders in each supervision camera against that camera's truth: what
-        # the image is drawn at, after depth init, refinement and splatting (stage 1's AbsRel above
-        # is on the sources' pixels both see; it misses what only one sees and what the target adds).
-        "view_depth_absrel": round(float(np.nanmean(view_absrel)), 5) if view_absrel else None,
-        "view_depth_absrel_person": round(float(np.mean(view_absrel_person)), 5) if view_absrel_person else None,
-        # Where stage 1's depth error lies: its scale per source and frame set (median depth over
-        # truth) and its shape (AbsRel once each is divided by that median).
-        "depth_scale": {"median_ratio_min": round(min(m for m, _ in split), 4), "median_ratio_max": round(max(m for m, _ in split), 4),
-                        "absrel_scale_free": round(float(np.mean([a for _, a in split])), 5)} if split else None,
-        "scale_jitter": {"mean": round(float(np.mean(jitter)), 6), "max": round(float(np.max(jitter)), 6), "pairs": len(jitter)} if jitter else None,
-        "references": out,
-    }
+    return g.result(len(picks), every, source.supervision)
 
 
 def depth_lines(result: dict) -> list[str]:
