@@ -68,7 +68,6 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
     for key, value in limits.items():
         if not value >= 0:
             raise ConfigError(f"limit {key} must be >= 0, got {value}")
-    truth_cams = {c.name for c in cfg.cameras if c.scheme == "sim"}
     mismatched = 0
     misassigned = 0
     detected: dict[str, set] = {c.name: set() for c in cfg.cameras}
@@ -76,6 +75,8 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
     sets = 0
     t0 = time.monotonic()
     with RigSession(cfg, **(session_options or {})) as session:
+        # cameras that know which pulse each of their frames truly exposed (simulated ones do)
+        truth_cams = {name for name, cam in session.cameras.items() if hasattr(cam, "truth_pulse")}
         rate = cfg.trigger.rate_hz if cfg.trigger else cfg.camera(session.grouper.reference).fps
         pulses_wanted = max(1, int(round(seconds * rate)))
         session.start(pulses_wanted if session.board is not None else 0)
@@ -95,7 +96,7 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
                 if frame is None:
                     detected[name].add((fs.train, fs.trigger_index))
                     continue
-                if name in truth_cams and hasattr(session.cameras[name], "truth_pulse"):
+                if name in truth_cams:
                     true_pulse = session.cameras[name].truth_pulse.get(frame.frame_id)
                     if true_pulse is not None:
                         exposed[name].add((fs.train, true_pulse))
