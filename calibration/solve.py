@@ -504,11 +504,7 @@ def calibrate_rig(
 ) -> CalibrationResult:
     opts = opts or Options()
     say = progress or (lambda s: None)
-    cams_with_views = [c for c in detections.cameras if detections.corners.get(c)]
-    for c in detections.cameras:
-        if not detections.corners.get(c):
-            raise CalibrationError(f"camera '{c}': the board was not found in any of its {detections.images_seen.get(c, 0)} images")
-    order, left, right = camera_order(cams_with_views, opts.left, opts.right)
+    order, left, right = _cameras_to_solve(detections, opts)
     _, object_points = board.object_points()
     rejected: list[Rejection] = []
 
@@ -520,7 +516,49 @@ def calibrate_rig(
     # A lens does not depend on which instant its images belong to; the rig does: the pairing is
     # checked (and the solve stopped) before the slower measures of each lens below.
     detections, intr, checks = _pair_instants(detections, intr, order, left, object_points, opts, say)
+    _measure_lenses(detections, intr, order, object_points, opts)
 
+    stereo = None
+    if right is not None:
+        say(f"stereo pair {left}-{right}")
+        stereo = stereo_pair(left, right, detections.corners, intr, object_points, detections.image_size[left])
+
+    say("initial rig geometry")
+    poses = _initial_camera_poses(order, intr, stereo, right)
+    joint = _joint_start(detections, intr, order, poses)
+    terms = _joint_terms(intr, order, opts)
+    sol, active, corners_rejected = _adjust_rejecting_outliers(joint, terms, intr, order, object_points, opts, rejected, say)
+
+    cameras = []
+    for ci, c in enumerate(order):
+        fx, fy, cx, cy, *d = sol.intrinsics[ci]
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        R = rodrigues(sol.cameras[ci, :3])
+        w, h = detections.image_size[c]
+        model = intr[c].model
+        cameras.append(CameraModel(c, w, h, K, np.array(d[: lens.N_DIST[model]]), R, sol.cameras[ci, 3:].copy(), model))
+    rig = RigCalibration(cameras, {})
+    obs = Observations(order, joint.views, joint.cam_idx[active], joint.view_idx[active], joint.ids[active], joint.uv[active], sol.residuals)
+    result = CalibrationResult(rig, left, right, obs, intr, rejected, stereo, sol, dict(detections.image_size), dict(detections.images_seen),
+                               {c: int(n) for c, n in zip(order, corners_rejected)}, checks)
+    rig.meta.update(summary_meta(result, board))
+    return result
+
+
+def _cameras_to_solve(detections: DetectionSet, opts: Options) -> tuple[list[str], str, str | None]:
+    """The cameras in solving order (calibrate_rig's `camera_order`); a camera that never saw the
+    board stops the solve, named."""
+    cams_with_views = [c for c in detections.cameras if detections.corners.get(c)]
+    for c in detections.cameras:
+        if not detections.corners.get(c):
+            raise CalibrationError(f"camera '{c}': the board was not found in any of its {detections.images_seen.get(c, 0)} images")
+    return camera_order(cams_with_views, opts.left, opts.right)
+
+
+def _measure_lenses(detections: DetectionSet, intr: dict[str, CameraIntrinsics], order: list[str], object_points: np.ndarray,
+                    opts: Options) -> None:
+    """Each fitted lens's focal spread over subsets of its kept views and, with `opts.lens_priors`,
+    what its own views measured of it (the prior the joint adjustment holds it to), set on `intr`."""
     for c in order:
         kept = {v: detections.corners[c][v] for v in intr[c].view_rms}
         intr[c].focal_spread = resampled_spread(c, detections.image_size[c], kept, object_points, opts, intr[c].K, intr[c].dist)
@@ -530,15 +568,24 @@ def calibrate_rig(
                 intr[c].lens_mean, intr[c].lens_information = measured
                 intr[c].lens_sigma = lens_sigmas(intr[c].lens_information, intr[c].model)
 
-    stereo = None
-    if right is not None:
-        say(f"stereo pair {left}-{right}")
-        stereo = stereo_pair(left, right, detections.corners, intr, object_points, detections.image_size[left])
 
-    say("initial rig geometry")
-    poses = _initial_camera_poses(order, intr, stereo, right)
+@dataclass
+class _JointStart:
+    """The joint adjustment's observations, every corner of every (camera, view) that survived the
+    single-camera fit (one row each), and where its unknowns start."""
+    views: list[str]
+    cam_idx: np.ndarray
+    view_idx: np.ndarray
+    ids: np.ndarray
+    uv: np.ndarray
+    view_pose: np.ndarray  # (views, 6) board-to-world
+    intr0: np.ndarray  # (cameras, 9) each lens: its own adjustment's where it has one, else its fit's
+    cams0: np.ndarray  # (cameras, 6) world-to-camera
+    fisheye: np.ndarray
 
-    # Observations of the joint adjustment: every (camera, view) that survived the single-camera fit.
+
+def _joint_start(detections: DetectionSet, intr: dict[str, CameraIntrinsics], order: list[str],
+                 poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> _JointStart:
     views = sorted({v for c in order for v in intr[c].poses}, key=natural_key)
     vindex = {v: i for i, v in enumerate(views)}
     obs_cam, obs_view, obs_ids, obs_uv = [], [], [], []
@@ -549,10 +596,6 @@ def calibrate_rig(
             obs_view.append(np.full(len(cr), vindex[v]))
             obs_ids.append(cr.ids)
             obs_uv.append(cr.points)
-    cam_idx = np.concatenate(obs_cam)
-    view_idx = np.concatenate(obs_view)
-    ids = np.concatenate(obs_ids)
-    uv = np.concatenate(obs_uv)
 
     # Board pose per view in the world: from the camera that sees the most of it.
     view_pose = np.zeros((len(views), 6))
@@ -566,8 +609,29 @@ def calibrate_rig(
     # five distortion slots whatever the lens (a fisheye's four terms leave the last at 0)
     intr0 = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *lens.coefficients("pinhole", d)]
                       for K, d in ((intr[c].K, intr[c].dist) for c in order)])
+    for ci, c in enumerate(order):  # a lens prior is centred on its camera's own adjustment, which starts it too
+        if intr[c].lens_mean is not None:
+            intr0[ci] = intr[c].lens_mean
     fisheye = np.array([intr[c].model == "fisheye" for c in order])
     cams0 = np.array([np.concatenate([rotation_vector(poses[c][0]), poses[c][1]]) for c in order])
+    return _JointStart(views, np.concatenate(obs_cam), np.concatenate(obs_view), np.concatenate(obs_ids), np.concatenate(obs_uv),
+                       view_pose, intr0, cams0, fisheye)
+
+
+@dataclass
+class _JointTerms:
+    """What the joint adjustment holds and what it pulls each lens towards."""
+    fixed: np.ndarray  # (cameras, 9) terms held
+    square: np.ndarray  # (cameras,) fy = fx
+    prior_px: np.ndarray  # (cameras, 9) each given term's prior sigma, for a corner noise of 1 px; inf: none
+    lens_info: np.ndarray  # (cameras, 9, 9) each lens's own fit as its prior, per unit of chi-square
+    priors: dict[str, dict[str, float]]  # camera -> term -> sigma, of the given intrinsics used as priors
+
+
+def _joint_terms(intr: dict[str, CameraIntrinsics], order: list[str], opts: Options) -> _JointTerms:
+    """Terms held (each lens's held terms; given intrinsics whole, or but for the terms `opts.prior`
+    lets move; the principal point with `opts.centred`) and the priors; records each given camera's
+    prior on its `intr`."""
     fixed_intr = np.zeros((len(order), bundle.N_INTR), dtype=bool)
     for ci, c in enumerate(order):
         names9 = bundle.intrinsic_names(intr[c].model)
@@ -578,8 +642,8 @@ def calibrate_rig(
         elif opts.centred:
             fixed_intr[ci, names9.index("cx")] = fixed_intr[ci, names9.index("cy")] = True
     square = np.array([opts.square_pixels and not intr[c].given for c in order])
-    prior_px = np.full((len(order), bundle.N_INTR), np.inf)  # each slot's prior sigma, for a corner noise of 1 px
-    # each lens's own fit as its prior (information per unit of chi-square, scaled to the corners' noise below)
+    prior_px = np.full((len(order), bundle.N_INTR), np.inf)
+    # each lens's own fit as its prior (information per unit of chi-square, scaled to the corners' noise in the adjustment)
     lens_info = np.zeros((len(order), bundle.N_INTR, bundle.N_INTR))
     for ci, c in enumerate(order):
         if intr[c].lens_information is not None:
@@ -593,25 +657,31 @@ def calibrate_rig(
             for term, sigma in priors[c].items():
                 fixed_intr[ci, names9.index(term)] = False
                 prior_px[ci, names9.index(term)] = sigma
+    return _JointTerms(fixed_intr, square, prior_px, lens_info, priors)
+
+
+def _adjust_rejecting_outliers(joint: _JointStart, terms: _JointTerms, intr: dict[str, CameraIntrinsics], order: list[str],
+                               object_points: np.ndarray, opts: Options, rejected: list[Rejection], say: Callable[[str], None]):
+    """The joint bundle adjustment, run again after each round's rejections (up to `opts.max_rounds`)
+    and with each corner weighted by its view's measured noise (`opts.reweight`): (the last solution,
+    which observations it kept, single corners rejected per camera). Rejected views go on `rejected`."""
+    cam_idx, view_idx, ids, uv, views = joint.cam_idx, joint.view_idx, joint.ids, joint.uv, joint.views
+    intr0, cams0, view_pose = joint.intr0, joint.cams0, joint.view_pose
     # The priors weigh against the corners in their noise's units: their measured noise, first from
     # the single-camera fits, then from the joint fit's views.
     noise_px = float(np.median([e for c in order for e in intr[c].view_rms.values()])) / np.sqrt(2.0)
-    for ci, c in enumerate(order):  # a lens prior is centred on its camera's own adjustment, which starts it too
-        if intr[c].lens_mean is not None:
-            intr0[ci] = intr[c].lens_mean
     prior_mean = intr0.copy()  # the given values and own fits: the priors' centres whatever the rounds move
-
     active = np.ones(len(uv), dtype=bool)
     corners_rejected = np.zeros(len(order), dtype=int)
     sigma = None  # per-corner noise estimate (its camera view's RMS), once a first fit gives one
     sol = None
     for round_ in range(opts.max_rounds):
         say(f"bundle adjustment, round {round_ + 1}")
-        problem = bundle.Problem(cam_idx[active], view_idx[active], object_points[ids[active]], uv[active], len(order), len(views), fisheye)
+        problem = bundle.Problem(cam_idx[active], view_idx[active], object_points[ids[active]], uv[active], len(order), len(views), joint.fisheye)
         w = None if sigma is None else 1.0 / sigma[active] ** 2
-        sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=fixed_intr, weights=w,
-                           square_pixels=square, prior_std=prior_px / max(noise_px, 1e-3) if priors else None,
-                           prior_mean=prior_mean, prior_information=lens_info * noise_px ** 2 if lens_info.any() else None)
+        sol = bundle.solve(problem, intr0, cams0, view_pose, fixed_cameras=(0,), fixed_intrinsics=terms.fixed, weights=w,
+                           square_pixels=terms.square, prior_std=terms.prior_px / max(noise_px, 1e-3) if terms.priors else None,
+                           prior_mean=prior_mean, prior_information=terms.lens_info * noise_px ** 2 if terms.lens_info.any() else None)
         intr0, cams0, view_pose = sol.intrinsics, sol.cameras, sol.views
         if round_ == opts.max_rounds - 1:
             break
@@ -641,18 +711,7 @@ def calibrate_rig(
             med_sigma = float(np.median(view_sigma))
             sigma = np.array([lookup.get(k, med_sigma) for k in all_key.tolist()]) / med_sigma
             noise_px = med_sigma
-        med = float(np.median(rms))
-        for k, e, e_all, f, b in zip(uniq, rms, rms_all, off_frac, bad_obs):
-            if not b:
-                continue
-            c, v = order[k // len(views)], views[k % len(views)]
-            # one reason per view: most corners off (the board mis-detected or moved) before a poor fit
-            if f > 0.25:
-                why = (f"{f * 100:.0f}% of its corners are more than {corner_limit:.2f} px off in the joint rig fit "
-                       f"(RMS of all its corners {e_all:.2f} px)")
-            else:
-                why = f"reprojection RMS {e:.2f} px in the joint rig fit, above the limit {limit:.2f} px (median {med:.2f} px)"
-            rejected.append(Rejection(c, v, "joint", float(e_all if f > 0.25 else e), why))
+        rejected.extend(_joint_rejections(order, views, uniq, rms, rms_all, off_frac, bad_obs, corner_limit, limit))
         active_idx = np.flatnonzero(active)
         drop = bad_obs[inv] | off
         single = off & ~bad_obs[inv]
@@ -662,18 +721,23 @@ def calibrate_rig(
             if not np.any(active & (cam_idx == ci)):
                 raise CalibrationError(f"camera '{c}': every view was rejected as an outlier; check the images of this camera")
     assert sol is not None
+    return sol, active, corners_rejected
 
-    cameras = []
-    for ci, c in enumerate(order):
-        fx, fy, cx, cy, *d = sol.intrinsics[ci]
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        R = rodrigues(sol.cameras[ci, :3])
-        w, h = detections.image_size[c]
-        model = intr[c].model
-        cameras.append(CameraModel(c, w, h, K, np.array(d[: lens.N_DIST[model]]), R, sol.cameras[ci, 3:].copy(), model))
-    rig = RigCalibration(cameras, {})
-    obs = Observations(order, views, cam_idx[active], view_idx[active], ids[active], uv[active], sol.residuals)
-    result = CalibrationResult(rig, left, right, obs, intr, rejected, stereo, sol, dict(detections.image_size), dict(detections.images_seen),
-                               {c: int(n) for c, n in zip(order, corners_rejected)}, checks)
-    rig.meta.update(summary_meta(result, board))
-    return result
+
+def _joint_rejections(order: list[str], views: list[str], keys: np.ndarray, rms: np.ndarray, rms_all: np.ndarray, off_frac: np.ndarray,
+                      bad: np.ndarray, corner_limit: float, limit: float) -> list[Rejection]:
+    """Each camera view a joint round rejects (`bad`, by key camera * len(views) + view), with its reason."""
+    med = float(np.median(rms))
+    out = []
+    for k, e, e_all, f, b in zip(keys, rms, rms_all, off_frac, bad):
+        if not b:
+            continue
+        c, v = order[k // len(views)], views[k % len(views)]
+        # one reason per view: most corners off (the board mis-detected or moved) before a poor fit
+        if f > 0.25:
+            why = (f"{f * 100:.0f}% of its corners are more than {corner_limit:.2f} px off in the joint rig fit "
+                   f"(RMS of all its corners {e_all:.2f} px)")
+        else:
+            why = f"reprojection RMS {e:.2f} px in the joint rig fit, above the limit {limit:.2f} px (median {med:.2f} px)"
+        out.append(Rejection(c, v, "joint", float(e_all if f > 0.25 else e), why))
+    return out
