@@ -241,45 +241,10 @@ def solve(
     fisheye = np.zeros(C, dtype=bool) if problem.fisheye is None else np.asarray(problem.fisheye, dtype=bool)
     state = State.from_vectors(np.asarray(intr0).reshape(C, N_INTR), np.asarray(cams0).reshape(C, 6), np.asarray(views0).reshape(V, 6))
     P = C * N_INTR + C * 6 + V * 6
-    free = np.ones(P, dtype=bool)
-    if fixed_intrinsics is not None:
-        free[: C * N_INTR] = ~np.asarray(fixed_intrinsics, dtype=bool).reshape(-1)
-    for c in np.flatnonzero(fisheye):  # the slot a fisheye lens does not use
-        free[c * N_INTR + FISHEYE_NAMES.index("")] = False
-    for c in fixed_cameras:
-        free[C * N_INTR + c * 6 : C * N_INTR + c * 6 + 6] = False
-    seen_views = np.zeros(V, dtype=bool)
-    seen_views[problem.view_idx] = True
-    for v in np.flatnonzero(~seen_views):  # a view with no corners has nothing to solve
-        free[C * N_INTR + C * 6 + v * 6 : C * N_INTR + C * 6 + v * 6 + 6] = False
-    ties = []  # (fy slot, fx slot): fy moves with fx
-    if square_pixels is not None:
-        for c in np.flatnonzero(np.asarray(square_pixels, dtype=bool)):
-            fx, fy = c * N_INTR + INTRINSIC_NAMES.index("fx"), c * N_INTR + INTRINSIC_NAMES.index("fy")
-            if free[fx] and free[fy]:
-                free[fy] = False
-                ties.append((fy, fx))
-    reduced = np.full(P, -1)
-    reduced[free] = np.arange(int(free.sum()))
-    for dst, src in ties:  # its Jacobian columns add into the fx unknown's
-        reduced[dst] = reduced[src]
+    free, ties, reduced = _unknowns(problem, fisheye, fixed_cameras, fixed_intrinsics, square_pixels)
     Pr = int(free.sum())
-    # Priors: per camera an information matrix over its intrinsic slots; those a free (or tied)
-    # unknown carries enter the cost, scattered onto their reduced columns.
-    info = np.zeros((C, N_INTR, N_INTR))
-    if prior_std is not None:
-        ps = np.asarray(prior_std, dtype=np.float64).reshape(C, N_INTR)
-        ok = np.isfinite(ps) & (ps > 0)
-        info[:, np.arange(N_INTR), np.arange(N_INTR)] += np.where(ok, 1.0 / np.where(ok, ps, 1.0) ** 2, 0.0)
-    if prior_information is not None:
-        info += np.nan_to_num(np.asarray(prior_information, dtype=np.float64).reshape(C, N_INTR, N_INTR))
     prior_centre_all = np.asarray(intr0 if prior_mean is None else prior_mean, dtype=np.float64).reshape(-1)
-    blocks = []  # (slots in the flat intrinsics, their reduced columns, information among them)
-    for c in range(C):
-        slots = c * N_INTR + np.arange(N_INTR)
-        has = (reduced[slots] >= 0) & (np.abs(info[c]).sum(axis=1) > 0)
-        if has.any():
-            blocks.append((slots[has], reduced[slots[has]], info[c][np.ix_(has, has)]))
+    blocks = _prior_blocks(C, reduced, prior_std, prior_information)
     prior_slots = np.concatenate([b[0] for b in blocks]) if blocks else np.zeros(0, dtype=int)
 
     # Work on corners grouped by camera view, so the normal equations can be summed per view first.
@@ -333,10 +298,83 @@ def solve(
 
     r = weighted_residuals(state)
     cost = total_cost(r, state)
+    state, r, cost, it, converged = _levenberg_marquardt(state, r, cost, normal_equations, weighted_residuals, total_cost, step,
+                                                         max_iterations, tolerance)
+
+    H, _ = normal_equations(state, r)  # at the solution, not at the last iterate before it
+    front = C * N_INTR + C * 6  # intrinsics and camera poses; the board poses after them are marginalised
+    n_res = 2 * len(r) + len(prior_slots)
+    std_front, why = parameter_std(H, cost, n_res, n_front=int(free[:front].sum()))
+    information = _intrinsics_information(H, cost, n_res, free, reduced, C, front)
+    std = np.full(front, np.nan)
+    std[free[:front]] = std_front
+    for dst, src in ties:
+        std[dst] = std[src]
+    unweighted = np.empty_like(r)
+    unweighted[order] = r / sw
+    intr, cams, views = state.vectors()
+    return Solution(intr, cams, views, unweighted, it, converged, std[: C * N_INTR].reshape(C, N_INTR), why, information)
+
+
+def _unknowns(problem: Problem, fisheye: np.ndarray, fixed_cameras: tuple[int, ...], fixed_intrinsics: np.ndarray | None,
+              square_pixels: np.ndarray | None) -> tuple[np.ndarray, list[tuple[int, int]], np.ndarray]:
+    """Which of the flat parameters (intrinsics, camera poses, board poses) are solved for: (free (P,)
+    bool, ties (fy slot, fx slot) of square pixels, reduced (P,) each parameter's unknown, -1 held;
+    a tied fy shares its fx's)."""
+    C, V = problem.n_cameras, problem.n_views
+    P = C * N_INTR + C * 6 + V * 6
+    free = np.ones(P, dtype=bool)
+    if fixed_intrinsics is not None:
+        free[: C * N_INTR] = ~np.asarray(fixed_intrinsics, dtype=bool).reshape(-1)
+    for c in np.flatnonzero(fisheye):  # the slot a fisheye lens does not use
+        free[c * N_INTR + FISHEYE_NAMES.index("")] = False
+    for c in fixed_cameras:
+        free[C * N_INTR + c * 6 : C * N_INTR + c * 6 + 6] = False
+    seen_views = np.zeros(V, dtype=bool)
+    seen_views[problem.view_idx] = True
+    for v in np.flatnonzero(~seen_views):  # a view with no corners has nothing to solve
+        free[C * N_INTR + C * 6 + v * 6 : C * N_INTR + C * 6 + v * 6 + 6] = False
+    ties = []  # (fy slot, fx slot): fy moves with fx
+    if square_pixels is not None:
+        for c in np.flatnonzero(np.asarray(square_pixels, dtype=bool)):
+            fx, fy = c * N_INTR + INTRINSIC_NAMES.index("fx"), c * N_INTR + INTRINSIC_NAMES.index("fy")
+            if free[fx] and free[fy]:
+                free[fy] = False
+                ties.append((fy, fx))
+    reduced = np.full(P, -1)
+    reduced[free] = np.arange(int(free.sum()))
+    for dst, src in ties:  # its Jacobian columns add into the fx unknown's
+        reduced[dst] = reduced[src]
+    return free, ties, reduced
+
+
+def _prior_blocks(C: int, reduced: np.ndarray, prior_std: np.ndarray | None,
+                  prior_information: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The priors, per camera an information matrix over its intrinsic slots: those a free (or tied)
+    unknown carries, as (slots in the flat intrinsics, their reduced columns, information among them)."""
+    info = np.zeros((C, N_INTR, N_INTR))
+    if prior_std is not None:
+        ps = np.asarray(prior_std, dtype=np.float64).reshape(C, N_INTR)
+        ok = np.isfinite(ps) & (ps > 0)
+        info[:, np.arange(N_INTR), np.arange(N_INTR)] += np.where(ok, 1.0 / np.where(ok, ps, 1.0) ** 2, 0.0)
+    if prior_information is not None:
+        info += np.nan_to_num(np.asarray(prior_information, dtype=np.float64).reshape(C, N_INTR, N_INTR))
+    blocks = []  # (slots in the flat intrinsics, their reduced columns, information among them)
+    for c in range(C):
+        slots = c * N_INTR + np.arange(N_INTR)
+        has = (reduced[slots] >= 0) & (np.abs(info[c]).sum(axis=1) > 0)
+        if has.any():
+            blocks.append((slots[has], reduced[slots[has]], info[c][np.ix_(has, has)]))
+    return blocks
+
+
+def _levenberg_marquardt(state: State, r: np.ndarray, cost: float, normal_equations, weighted_residuals, total_cost, step,
+                         max_iterations: int, tolerance: float) -> tuple[State, np.ndarray, float, int, bool]:
+    """Damped Gauss-Newton steps from `state` (its weighted residuals `r` and cost) until a step no
+    longer lowers the cost by `tolerance` of it: (state, r, cost, iterations, converged)."""
     lam = 1e-3
     converged = False
     it = 0
-    H = None
     rel = 0.0
     for it in range(1, max_iterations + 1):
         H, grad = normal_equations(state, r)
@@ -362,20 +400,7 @@ def solve(
         if not improved or rel < tolerance:
             converged = True
             break
-
-    H, _ = normal_equations(state, r)  # at the solution, not at the last iterate before it
-    front = C * N_INTR + C * 6  # intrinsics and camera poses; the board poses after them are marginalised
-    n_res = 2 * len(r) + len(prior_slots)
-    std_front, why = parameter_std(H, cost, n_res, n_front=int(free[:front].sum()))
-    information = _intrinsics_information(H, cost, n_res, free, reduced, C, front)
-    std = np.full(front, np.nan)
-    std[free[:front]] = std_front
-    for dst, src in ties:
-        std[dst] = std[src]
-    unweighted = np.empty_like(r)
-    unweighted[order] = r / sw
-    intr, cams, views = state.vectors()
-    return Solution(intr, cams, views, unweighted, it, converged, std[: C * N_INTR].reshape(C, N_INTR), why, information)
+    return state, r, cost, it, converged
 
 
 def _intrinsics_information(H: np.ndarray, cost: float, n_residuals: int, free: np.ndarray, reduced: np.ndarray, C: int,
