@@ -171,115 +171,33 @@ def _lens_prior(fit, cam: CameraModel) -> dict[str, Any] | None:
     return {"kept": not beyond, "beyond": beyond, "terms": terms}
 
 
-def _lens_moved_warning(name: str, lp: dict[str, Any], shared_views: int) -> str:
+def _lens_moved_reason(lp: dict[str, Any], shared_views: int) -> str:
     moves = ", ".join(f"{t} {lp['terms'][t]['moved']:+.4g} ({lp['terms'][t]['moved_sigma']:+.1f} sigma of its own fit)" for t in lp["beyond"])
     few = f"too few views shared with the other cameras ({shared_views}), " if shared_views < MIN_GOOD_VIEWS else ""
-    return (f"camera '{name}': the joint solve moved its lens beyond what its own views allow: {moves}; likely causes: {few}"
+    return (f"the joint solve moved its lens beyond what its own views allow: {moves}; likely causes: {few}"
             "its images out of step with the others' (timing), a board that is not flat, or a lens its views measured poorly")
 
 
 def build_report(result: CalibrationResult) -> dict[str, Any]:
     obs = result.observations
-    rig = result.rig
     names = obs.cameras
     sq = np.sum(obs.residuals ** 2, axis=1)
     V = len(obs.views)
-    rms_px: dict[str, float] = {}
-    views_used: dict[str, int] = {}
+    per_view = _per_view_rms(obs, sq)
     per_camera: dict[str, Any] = {}
-    per_view: dict[str, dict[str, float]] = {}
     warnings: list[str] = []
-
-    key = obs.cam_idx * V + obs.view_idx
-    uniq, inv = np.unique(key, return_inverse=True)
-    obs_rms = np.sqrt(np.bincount(inv, weights=sq) / np.bincount(inv))
-    for k, e in zip(uniq, obs_rms):
-        per_view.setdefault(obs.views[k % V], {})[names[k // V]] = _r(e)
-
-    rejected_by_cam: dict[str, int] = {}
-    for rej in result.rejected:
-        rejected_by_cam[rej.camera] = rejected_by_cam.get(rej.camera, 0) + 1
-
     for ci, name in enumerate(names):
-        m = obs.cam_idx == ci
-        cam = rig[name]
-        rms_px[name] = _r(np.sqrt(np.mean(sq[m])))
-        used_views = sorted(set(obs.view_idx[m].tolist()))
-        views_used[name] = len(used_views)
-        hulls = [obs.uv[m & (obs.view_idx == v)] for v in used_views]
-        cov = coverage(result.image_size[name], hulls)
-        std = result.solution.intrinsics_std[ci]
-        per_camera[name] = {
-            "width": cam.width,
-            "height": cam.height,
-            "fx": _r(cam.fx, 3),
-            "fy": _r(cam.fy, 3),
-            "cx": _r(cam.cx, 3),
-            "cy": _r(cam.cy, 3),
-            "model": cam.model,
-            "dist": [round(float(x), 6) for x in cam.dist],
-            "std": {k: _significant(std[i]) for i, k in enumerate(("fx", "fy", "cx", "cy"))},
-            "center_m": [round(float(x), 5) for x in cam.center],
-            "rms_px": rms_px[name],
-            "rms_single_camera_px": _r(result.intrinsics[name].rms),
-            "views_used": views_used[name],
-            "views_found": len(result.intrinsics[name].view_rms) + sum(
-                1 for r in result.rejected if r.camera == name and r.stage == "intrinsics"
-            ),
-            "images": result.images_seen.get(name),
-            "rejected": rejected_by_cam.get(name, 0),
-            "corners_rejected": result.corners_rejected.get(name, 0),
-            "coverage": cov,
-            "held": list(result.intrinsics[name].held),  # distortion terms held at 0
-            "intrinsics_given": result.intrinsics[name].given,  # held at values given beforehand (--intrinsics)
-            "prior": _prior(result.intrinsics[name], cam),
-            "lens_prior": _lens_prior(result.intrinsics[name], cam),
-            "focal_spread_pct": None if result.intrinsics[name].focal_spread is None else round(100 * result.intrinsics[name].focal_spread, 3),
-        }
-        first_warning = len(warnings)
-        # Intrinsics given and held were not fitted here: what would make a fit of them doubtful (few
-        # views, a small part of the image, no covariance for them) says nothing of them. Their RMS does.
-        held_given = result.intrinsics[name].given and not result.intrinsics[name].prior
-        if views_used[name] < MIN_GOOD_VIEWS and not held_given:
-            warnings.append(f"camera '{name}': only {views_used[name]} views used; {MIN_GOOD_VIEWS} or more are needed to trust its intrinsics")
-        if cov["fraction"] < MIN_COVERAGE and not held_given:
-            where = f" (never seen: {', '.join(cov['never_seen'])})" if cov["never_seen"] else ""
-            warnings.append(
-                f"camera '{name}': the board covered only {cov['fraction'] * 100:.0f}% of the image{where}; "
-                "distortion there is extrapolated, show the board in those regions"
-            )
-        if rms_px[name] is not None and rms_px[name] > MAX_GOOD_RMS_PX:
-            warnings.append(f"camera '{name}': reprojection RMS {rms_px[name]:.2f} px is high (above {MAX_GOOD_RMS_PX} px)")
-        if result.intrinsics[name].k3_held_for_views and not held_given:
-            warnings.append(f"camera '{name}': too few views to estimate k3; it was held at 0")
-        std_of = per_camera[name]["std"]
-        unknown = [k for k, v in std_of.items() if v is None]
-        if unknown and not held_given:
-            why = result.solution.std_unknown_reason or "the adjustment's covariance is not defined for them"
-            warnings.append(f"camera '{name}': the uncertainty of {', '.join(unknown)} is unknown ({why})")
-        loose = [k for k in ("fx", "fy") if std_of[k] is not None and std_of[k] > MAX_FOCAL_STD_PCT / 100 * per_camera[name][k]]
-        if loose:
-            warnings.append(
-                f"camera '{name}': its focal length is poorly determined ("
-                + ", ".join(f"{k} {per_camera[name][k]:.1f} +- {std_of[k]:.3g} px" for k in loose)
-                + "); show the board at more varied tilts and distances"
-            )
-        lp = per_camera[name]["lens_prior"]
-        if lp is not None and not lp["kept"]:
-            shared = int(sum(1 for v in used_views if np.any((obs.view_idx == v) & (obs.cam_idx != ci))))
-            warnings.append(_lens_moved_warning(name, lp, shared))
-        spread = result.intrinsics[name].focal_spread
-        if spread is not None and spread > SPREAD_WARN:
-            warnings.append(f"camera '{name}': {spread_reason(spread, views_used[name])}")
-        reasons = [w.split(": ", 1)[1] for w in warnings[first_warning:]]
-        per_camera[name]["verdict"] = verdict(rms_px[name], reasons)
+        per_camera[name] = _camera_entry(result, ci, sq)
+        reasons = _camera_warnings(result, ci, per_camera[name])
+        warnings += [f"camera '{name}': {r}" for r in reasons]
+        per_camera[name]["verdict"] = verdict(per_camera[name]["rms_px"], reasons)
         per_camera[name]["reasons"] = reasons
 
     shared_views = [v for v, cams in per_view.items() if len(cams) >= 2]
     report: dict[str, Any] = {
         "cameras": per_camera,
-        "rms_px": rms_px,
-        "views_used": views_used,
+        "rms_px": {n: c["rms_px"] for n, c in per_camera.items()},
+        "views_used": {n: c["views_used"] for n, c in per_camera.items()},
         "views_total": V,
         "views_multi_camera": len(shared_views),
         "per_view": {v: per_view[v] for v in obs.views if v in per_view},
@@ -295,42 +213,145 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
     if not result.solution.converged:
         warnings.append("the joint adjustment did not converge within its iteration limit")
     if result.right is not None:
-        li, ri = names.index(result.left), names.index(result.right)
-        left, right = rig[result.left], rig[result.right]
-        common = sorted(set(obs.view_idx[obs.cam_idx == li].tolist()) & set(obs.view_idx[obs.cam_idx == ri].tolist()))
-        mask = np.isin(obs.view_idx, common) & ((obs.cam_idx == li) | (obs.cam_idx == ri))
-        stereo_rms = float(np.sqrt(np.mean(sq[mask]))) if mask.any() else None
-        pairs = []
-        for v in common:
-            ml = (obs.cam_idx == li) & (obs.view_idx == v)
-            mr = (obs.cam_idx == ri) & (obs.view_idx == v)
-            _, a, b = np.intersect1d(obs.ids[ml], obs.ids[mr], return_indices=True)
-            if len(a):
-                pairs.append((obs.uv[ml][a], obs.uv[mr][b]))
-        epi = epipolar_error(left, right, pairs)
-        baseline = float(np.linalg.norm(right.center - left.center))
-        report["stereo_rms_px"] = _r(stereo_rms)
-        report["baseline_m"] = _r(baseline, 6)
-        report["stereo"] = {
-            "left": result.left,
-            "right": result.right,
-            "common_views": len(common),
-            "rms_px": _r(stereo_rms),
-            "rms_fixed_intrinsics_px": _r(result.stereo_init["rms_px"]) if result.stereo_init else None,
-            "baseline_m": _r(baseline, 6),
-            "epipolar_rms_px": _r(epi["rms_px"]) if epi else None,
-            "epipolar_max_px": _r(epi["max_px"]) if epi else None,
-            "epipolar_along": epi["measured_along"] if epi else None,
-        }
-        if len(common) < MIN_STEREO_VIEWS:
-            warnings.append(
-                f"stereo pair: '{result.left}' and '{result.right}' saw the board together in only {len(common)} views; "
-                f"their relative pose rests on the other cameras ({MIN_STEREO_VIEWS} or more shared views are advised)"
-            )
-        if epi and epi["rms_px"] > MAX_GOOD_EPIPOLAR_PX:
-            warnings.append(f"stereo pair: epipolar error after rectification is {epi['rms_px']:.2f} px RMS (above {MAX_GOOD_EPIPOLAR_PX} px)")
+        report["stereo"] = _stereo_entry(result, sq, warnings)
+        report["stereo_rms_px"] = report["stereo"]["rms_px"]
+        report["baseline_m"] = report["stereo"]["baseline_m"]
     report["warnings"] = warnings
     return report
+
+
+def _per_view_rms(obs, sq: np.ndarray) -> dict[str, dict[str, float]]:
+    """view -> camera -> reprojection RMS of that camera's corners in that view."""
+    V = len(obs.views)
+    per_view: dict[str, dict[str, float]] = {}
+    key = obs.cam_idx * V + obs.view_idx
+    uniq, inv = np.unique(key, return_inverse=True)
+    obs_rms = np.sqrt(np.bincount(inv, weights=sq) / np.bincount(inv))
+    for k, e in zip(uniq, obs_rms):
+        per_view.setdefault(obs.views[k % V], {})[obs.cameras[k // V]] = _r(e)
+    return per_view
+
+
+def _camera_entry(result: CalibrationResult, ci: int, sq: np.ndarray) -> dict[str, Any]:
+    """One camera's figures: its lens and uncertainty, RMS, views, coverage and priors."""
+    obs = result.observations
+    name = obs.cameras[ci]
+    cam = result.rig[name]
+    m = obs.cam_idx == ci
+    used_views = sorted(set(obs.view_idx[m].tolist()))
+    hulls = [obs.uv[m & (obs.view_idx == v)] for v in used_views]
+    std = result.solution.intrinsics_std[ci]
+    intr = result.intrinsics[name]
+    return {
+        "width": cam.width,
+        "height": cam.height,
+        "fx": _r(cam.fx, 3),
+        "fy": _r(cam.fy, 3),
+        "cx": _r(cam.cx, 3),
+        "cy": _r(cam.cy, 3),
+        "model": cam.model,
+        "dist": [round(float(x), 6) for x in cam.dist],
+        "std": {k: _significant(std[i]) for i, k in enumerate(("fx", "fy", "cx", "cy"))},
+        "center_m": [round(float(x), 5) for x in cam.center],
+        "rms_px": _r(np.sqrt(np.mean(sq[m]))),
+        "rms_single_camera_px": _r(intr.rms),
+        "views_used": len(used_views),
+        "views_found": len(intr.view_rms) + sum(1 for r in result.rejected if r.camera == name and r.stage == "intrinsics"),
+        "images": result.images_seen.get(name),
+        "rejected": sum(1 for r in result.rejected if r.camera == name),
+        "corners_rejected": result.corners_rejected.get(name, 0),
+        "coverage": coverage(result.image_size[name], hulls),
+        "held": list(intr.held),  # distortion terms held at 0
+        "intrinsics_given": intr.given,  # held at values given beforehand (--intrinsics)
+        "prior": _prior(intr, cam),
+        "lens_prior": _lens_prior(intr, cam),
+        "focal_spread_pct": None if intr.focal_spread is None else round(100 * intr.focal_spread, 3),
+    }
+
+
+def _camera_warnings(result: CalibrationResult, ci: int, entry: dict[str, Any]) -> list[str]:
+    """What makes camera `ci`'s calibration doubtful, one reason each (the report's warnings name the camera)."""
+    obs = result.observations
+    name = obs.cameras[ci]
+    intr = result.intrinsics[name]
+    views_used, rms, cov = entry["views_used"], entry["rms_px"], entry["coverage"]
+    reasons: list[str] = []
+    # Intrinsics given and held were not fitted here: what would make a fit of them doubtful (few
+    # views, a small part of the image, no covariance for them) says nothing of them. Their RMS does.
+    held_given = intr.given and not intr.prior
+    if views_used < MIN_GOOD_VIEWS and not held_given:
+        reasons.append(f"only {views_used} views used; {MIN_GOOD_VIEWS} or more are needed to trust its intrinsics")
+    if cov["fraction"] < MIN_COVERAGE and not held_given:
+        where = f" (never seen: {', '.join(cov['never_seen'])})" if cov["never_seen"] else ""
+        reasons.append(
+            f"the board covered only {cov['fraction'] * 100:.0f}% of the image{where}; "
+            "distortion there is extrapolated, show the board in those regions"
+        )
+    if rms is not None and rms > MAX_GOOD_RMS_PX:
+        reasons.append(f"reprojection RMS {rms:.2f} px is high (above {MAX_GOOD_RMS_PX} px)")
+    if intr.k3_held_for_views and not held_given:
+        reasons.append("too few views to estimate k3; it was held at 0")
+    std_of = entry["std"]
+    unknown = [k for k, v in std_of.items() if v is None]
+    if unknown and not held_given:
+        why = result.solution.std_unknown_reason or "the adjustment's covariance is not defined for them"
+        reasons.append(f"the uncertainty of {', '.join(unknown)} is unknown ({why})")
+    loose = [k for k in ("fx", "fy") if std_of[k] is not None and std_of[k] > MAX_FOCAL_STD_PCT / 100 * entry[k]]
+    if loose:
+        reasons.append(
+            "its focal length is poorly determined ("
+            + ", ".join(f"{k} {entry[k]:.1f} +- {std_of[k]:.3g} px" for k in loose)
+            + "); show the board at more varied tilts and distances"
+        )
+    lp = entry["lens_prior"]
+    if lp is not None and not lp["kept"]:
+        m = obs.cam_idx == ci
+        used_views = sorted(set(obs.view_idx[m].tolist()))
+        shared = int(sum(1 for v in used_views if np.any((obs.view_idx == v) & (obs.cam_idx != ci))))
+        reasons.append(_lens_moved_reason(lp, shared))
+    spread = intr.focal_spread
+    if spread is not None and spread > SPREAD_WARN:
+        reasons.append(spread_reason(spread, views_used))
+    return reasons
+
+
+def _stereo_entry(result: CalibrationResult, sq: np.ndarray, warnings: list[str]) -> dict[str, Any]:
+    """The stereo pair's figures (RMS over their shared views, baseline, epipolar error after
+    rectification); what makes them doubtful is appended to `warnings`."""
+    obs = result.observations
+    names = obs.cameras
+    li, ri = names.index(result.left), names.index(result.right)
+    left, right = result.rig[result.left], result.rig[result.right]
+    common = sorted(set(obs.view_idx[obs.cam_idx == li].tolist()) & set(obs.view_idx[obs.cam_idx == ri].tolist()))
+    mask = np.isin(obs.view_idx, common) & ((obs.cam_idx == li) | (obs.cam_idx == ri))
+    stereo_rms = float(np.sqrt(np.mean(sq[mask]))) if mask.any() else None
+    pairs = []
+    for v in common:
+        ml = (obs.cam_idx == li) & (obs.view_idx == v)
+        mr = (obs.cam_idx == ri) & (obs.view_idx == v)
+        _, a, b = np.intersect1d(obs.ids[ml], obs.ids[mr], return_indices=True)
+        if len(a):
+            pairs.append((obs.uv[ml][a], obs.uv[mr][b]))
+    epi = epipolar_error(left, right, pairs)
+    baseline = float(np.linalg.norm(right.center - left.center))
+    if len(common) < MIN_STEREO_VIEWS:
+        warnings.append(
+            f"stereo pair: '{result.left}' and '{result.right}' saw the board together in only {len(common)} views; "
+            f"their relative pose rests on the other cameras ({MIN_STEREO_VIEWS} or more shared views are advised)"
+        )
+    if epi and epi["rms_px"] > MAX_GOOD_EPIPOLAR_PX:
+        warnings.append(f"stereo pair: epipolar error after rectification is {epi['rms_px']:.2f} px RMS (above {MAX_GOOD_EPIPOLAR_PX} px)")
+    return {
+        "left": result.left,
+        "right": result.right,
+        "common_views": len(common),
+        "rms_px": _r(stereo_rms),
+        "rms_fixed_intrinsics_px": _r(result.stereo_init["rms_px"]) if result.stereo_init else None,
+        "baseline_m": _r(baseline, 6),
+        "epipolar_rms_px": _r(epi["rms_px"]) if epi else None,
+        "epipolar_max_px": _r(epi["max_px"]) if epi else None,
+        "epipolar_along": epi["measured_along"] if epi else None,
+    }
 
 
 def summary_meta(result: CalibrationResult, board: BoardSpec) -> dict[str, Any]:
