@@ -36,6 +36,19 @@ def references(folder) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
     return out
 
 
+def assert_poses_within_references(rig, sleap, max_deg: float, max_ratio: float) -> None:
+    """Every camera's rotation relative to `back` within `max_deg` of each reference model's, and
+    its distance from `back` within `max_ratio` of the reference's."""
+    back = rig["back"]
+    for model, ref in references(sleap).items():
+        for name in ("mid", "side", "top"):
+            rel = rig[name].R @ back.R.T
+            centre = back.R @ (rig[name].center - back.center) * 1000.0
+            angle = np.degrees(np.arccos(np.clip((np.trace(rel @ cv2.Rodrigues(ref[name][0])[0].T) - 1) / 2, -1, 1)))
+            ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
+            assert angle < max_deg and abs(ratio - 1) < max_ratio, (model, name, angle, ratio)
+
+
 @pytest.fixture(scope="module")
 def charuco_run(sleap, tmp_path_factory):
     out = tmp_path_factory.mktemp("sleap") / "calib.json"
@@ -53,16 +66,7 @@ def test_poses_match_both_opencv_references(charuco_run, sleap):
     _, rig = charuco_run
     refs = references(sleap)
     assert len(refs) == 2 and all(set(r) == {"back", "mid", "side", "top"} for r in refs.values()), refs
-    back = rig["back"]
-    for model, ref in refs.items():
-        for name in ("mid", "side", "top"):
-            cam = rig[name]
-            rel = cam.R @ back.R.T
-            centre = back.R @ (cam.center - back.center) * 1000.0
-            r_ref = cv2.Rodrigues(ref[name][0])[0]
-            angle = np.degrees(np.arccos(np.clip((np.trace(rel @ r_ref.T) - 1) / 2, -1, 1)))
-            ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
-            assert angle < 2.5 and abs(ratio - 1) < 0.05, (model, name, angle, ratio)
+    assert_poses_within_references(rig, sleap, 2.5, 0.05)
 
 
 def _anipose_poses(path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -123,14 +127,7 @@ def test_the_reference_intrinsics_as_priors_fit_better_than_held_and_keep_the_po
         assert set(prior) == {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
         assert prior["cx"]["sigma"] == 10 and all(abs(p["moved_sigma"]) < 6 for p in prior.values()), prior
     assert cams["side"]["prior"] is None
-    back = rig["back"]
-    for model, ref in references(sleap).items():
-        for name in ("mid", "side", "top"):
-            rel = rig[name].R @ back.R.T
-            centre = back.R @ (rig[name].center - back.center) * 1000.0
-            angle = np.degrees(np.arccos(np.clip((np.trace(rel @ cv2.Rodrigues(ref[name][0])[0].T) - 1) / 2, -1, 1)))
-            ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
-            assert angle < 2.5 and abs(ratio - 1) < 0.05, (model, name, angle, ratio)
+    assert_poses_within_references(rig, sleap, 2.5, 0.05)
 
 
 def test_a_camera_renumbered_one_instant_late_is_named_and_applying_the_offset_restores_the_poses(sleap, tmp_path, capsys):
@@ -154,14 +151,7 @@ def test_a_camera_renumbered_one_instant_late_is_named_and_applying_the_offset_r
     summary = run_json(*argv, "--offset", "mid=-1")
     rig = RigCalibration.load(out)
     assert [p["applied"] for p in summary["pairing"] if p["camera"] == "mid"] == [-1]
-    back = rig["back"]
-    for model, ref in references(sleap).items():
-        for name in ("mid", "side", "top"):
-            rel = rig[name].R @ back.R.T
-            centre = back.R @ (rig[name].center - back.center) * 1000.0
-            angle = np.degrees(np.arccos(np.clip((np.trace(rel @ cv2.Rodrigues(ref[name][0])[0].T) - 1) / 2, -1, 1)))
-            ratio = np.linalg.norm(centre) / np.linalg.norm(ref[name][1])
-            assert angle < 2.5 and abs(ratio - 1) < 0.05, (model, name, angle, ratio)
+    assert_poses_within_references(rig, sleap, 2.5, 0.05)
 
 
 def test_a_lens_the_joint_solve_moved_beyond_its_own_fit_is_named_with_its_terms_and_likely_causes(charuco_run):
