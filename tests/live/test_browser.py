@@ -265,19 +265,24 @@ def test_health_banner_appears_and_clears(page, live_rig):
 
 
 def test_second_browser_gets_its_own_view_and_the_first_keeps_its_rate(page, live_rig, server):
-    rate_alone = draw_rate(page, 2.0)
     other = new_driver()
     try:
         other.get(server.url + "?t=0.1")
         wait_frames(other, 5)
         wait_view(other)
-        rate_shared = draw_rate(page, 2.0)
-        # A model-bound engine renders both views of a set after one shared stage 1: the first viewer
-        # keeps (stage1 + view) / (stage1 + 2 views) of its rate; a colour engine keeps all of it.
-        ms = live_rig.engine.status()["ms"]
-        share = 1.0 if live_rig.kind == "colour" else (ms["stage1"] + ms["view"]) / (ms["stage1"] + 2 * ms["view"])
-        assert rate_shared >= 0.6 * share * rate_alone, (rate_alone, rate_shared, share)
-        assert draw_rate(other, 1.0) > 0.3 * rate_alone
+        # Measured against what the engine did in the same window, not against the wall clock: on a
+        # loaded machine the model slows for everyone, but each set it renders after one shared stage 1
+        # still reaches both viewers (a colour engine has no stage 1: its sets are the ones it took in).
+        engine = live_rig.engine
+        counter = "sets_in" if live_rig.kind == "colour" else "stage1_runs"
+        s0, first0, second0 = engine.status(), frames_drawn(page), frames_drawn(other)
+        wait_until(lambda: engine.status()[counter] >= s0[counter] + 8, 60.0, what="8 sets rendered while shared")
+        s1, first, second = engine.status(), frames_drawn(page) - first0, frames_drawn(other) - second0
+        sets = s1[counter] - s0[counter]
+        assert first >= 0.6 * sets and second >= 0.6 * sets, (sets, first, second)
+        if live_rig.kind != "colour":
+            views = s1["view_runs"] - s0["view_runs"]
+            assert views >= 1.5 * sets, (sets, views)  # one stage 1 serves both viewers' views
         first, second = page_viewer(page, live_rig), page_viewer(other, live_rig)
         assert first.id != second.id
         assert second.messages[-1] == {"type": "viewpoint", "t": 0.1}
