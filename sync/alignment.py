@@ -90,7 +90,7 @@ def _sse(y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     syy = float(((y - ym) ** 2).sum())
     with np.errstate(divide="ignore", invalid="ignore"):
         c1 = np.where(sxx > 0, sxy / sxx, 0.0)
-        sse = np.where(sxx > 0, syy - sxy * c1, syy)
+        sse = np.where(sxx > 0, np.maximum(syy - sxy * c1, 0.0), syy)  # an exact fit rounds to just under 0
     c0 = ym - c1 * xm[:, 0]
     return sse, c0, c1
 

@@ -105,6 +105,17 @@ def test_find_flash_reports_a_flash_in_the_dead_time_as_uncertain():
     assert abs(est.onset_ns - onset) <= est.uncertainty_ns + 1e6
 
 
+def test_an_exact_fit_has_zero_residual_not_a_negative_one():
+    # syy - sxy * c1 rounds to about -3e-11 for an exact line: the noise estimate then took the
+    # square root of a negative number (a NaN that max() happened to skip, with a RuntimeWarning)
+    from sync.alignment import _sse
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 1, (2000, 40))
+    sse, c0, c1 = _sse(20.0 + 200.0 * x[7], x)
+    assert (sse >= 0).all() and sse[7] == pytest.approx(0.0, abs=1e-9)
+    assert (c0[7], c1[7]) == (pytest.approx(20.0), pytest.approx(200.0))
+
+
 def test_no_flash_is_an_error_not_a_guess():
     rng = np.random.default_rng(1)
     with pytest.raises(SyncError, match="no flash"):
