@@ -10,13 +10,16 @@ EXPORT_FORMATS = ("opencv", "easymocap", "anipose", "nerfstudio", "colmap")
 
 
 def register(subparsers) -> None:
-    from rig.capture.calibration_views import MAX_FRAMES, TIMEOUT_S
-
     p = subparsers.add_parser("calibrate", help="calibrate the rig with a ChArUco or chessboard board",
                               description="Calibrate the rig's cameras (intrinsics, stereo pair, all cameras in the left camera's frame).")
     sub = p.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND")
     sub.required = True
+    for add in (_board_parser, _run_parser, _intrinsics_parser, _capture_parser, _report_parser, _export_parser):
+        add(sub)
 
+
+def _board_parser(sub) -> None:
+    """`rig calibrate board`."""
     b = sub.add_parser("board", help="render a printable board at true size",
                        description="Render the board a BOARD.toml describes as a PNG that prints at true size.")
     b.add_argument("board", metavar="BOARD.toml", help="board description (type = chessboard | charuco, ...)")
@@ -25,6 +28,9 @@ def register(subparsers) -> None:
     b.add_argument("--json", action="store_true", help="print one JSON object with the image size")
     b.set_defaults(func=cmd_board)
 
+
+def _run_parser(sub) -> None:
+    """`rig calibrate run`."""
     r = sub.add_parser("run", help="calibrate from images on disk",
                        description="Calibrate from images DIR/CAMNAME/*.png|jpg (same file stem = same instant; when no two cameras share a stem, the same number ending the name, as in CAM-TIME-N.jpg) "
                                    "or leftNN/rightNN pairs in one folder.")
@@ -34,19 +40,7 @@ def register(subparsers) -> None:
     r.add_argument("-c", "--config", metavar="RIG.toml", help="the rig's configuration: the stereo pair is its left and right cameras")
     r.add_argument("--left", metavar="NAME", help="camera at the origin (default: the config's left camera, 'left', else the first)")
     r.add_argument("--right", metavar="NAME", help="other camera of the stereo pair (default: 'right', else the last)")
-    r.add_argument("--outlier-px", type=float, default=1.0, help="reject views whose RMS exceeds max(this, 5 x median) (default 1.0)")
-    r.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto",
-                   help="third radial term: hold it at 0 (ordinary lenses, under ~90 degrees across: it is poorly observable "
-                        "and fitted values are noise), fit it (wide-angle lenses), or auto: fit it from 10 views per camera (default)")
-    r.add_argument("--fix-aspect", action="store_true", help="hold fy = fx (square pixels): for weak data from an ordinary camera")
-    r.add_argument("--fix-principal-point", action="store_true",
-                   help="hold the principal point at the image centre: for weak data (a board in few parts of the image)")
-    r.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto",
-                   help="tangential terms p1 p2: hold them at 0 (lenses centred on the sensor), fit them, or auto: "
-                        "fit them from 10 views per camera (default)")
-    r.add_argument("--fisheye", action="append", nargs="?", const="*", metavar="NAME",
-                   help="fit OpenCV's fisheye lens model (k1..k4; wide lenses such as GoPros') to this camera, or to every camera "
-                        "when no name is given (repeatable; default: the pinhole model with k1 k2 p1 p2 k3)")
+    _lens_options(r)
     r.add_argument("--intrinsics", metavar="FILE",
                    help="hold these cameras' intrinsics fixed while the rig is solved: a `rig calibrate intrinsics` file, "
                         "a calibration file, or an anipose calibration TOML")
@@ -69,6 +63,9 @@ def register(subparsers) -> None:
     r.add_argument("--json", action="store_true", help="print one JSON object with the results")
     r.set_defaults(func=cmd_run)
 
+
+def _intrinsics_parser(sub) -> None:
+    """`rig calibrate intrinsics`."""
     i = sub.add_parser("intrinsics", help="calibrate each camera's lens from its own board session",
                        description="Each camera's intrinsics from its own close-up board views: DIR/CAMNAME/*.png|jpg, or one "
                                    "camera's images directly in DIR (named after DIR). Views that do not fit are rejected with one "
@@ -78,19 +75,15 @@ def register(subparsers) -> None:
     i.add_argument("--board", required=True, metavar="BOARD.toml", help="board description")
     i.add_argument("-o", "--output", required=True, metavar="intrinsics.json", help="file to write")
     i.add_argument("--camera", action="append", metavar="NAME", help="only this camera (repeatable; default: every camera)")
-    i.add_argument("--outlier-px", type=float, default=1.0,
-                   help="reject views whose RMS exceeds max(this, 5 x the other views' median) (default 1.0)")
-    i.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto", help="third radial term, as for `run` (default auto)")
-    i.add_argument("--fix-aspect", action="store_true", help="hold fy = fx (square pixels): for weak data from an ordinary camera")
-    i.add_argument("--fix-principal-point", action="store_true",
-                   help="hold the principal point at the image centre: for weak data (a board in few parts of the image)")
-    i.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto", help="p1 p2, as for `run` (default auto)")
-    i.add_argument("--fisheye", action="append", nargs="?", const="*", metavar="NAME",
-                   help="fit OpenCV's fisheye lens model (k1..k4) to this camera, or to every camera when no name is given "
-                        "(repeatable; with --k3, k3 and k4 are held or fitted together)")
+    _lens_options(i)
     i.add_argument("--force", action="store_true", help="replace an existing file")
     i.add_argument("--json", action="store_true", help="print one JSON object with the results")
     i.set_defaults(func=cmd_intrinsics)
+
+
+def _capture_parser(sub) -> None:
+    """`rig calibrate capture`."""
+    from rig.capture.calibration_views import MAX_FRAMES, TIMEOUT_S
 
     c = sub.add_parser("capture", help="collect calibration views from the rig",
                        description="Show the board to the rig; views that add coverage are kept as DIR/CAMNAME/NNNN.png for `rig calibrate run`.")
@@ -104,12 +97,18 @@ def register(subparsers) -> None:
     c.add_argument("--json", action="store_true", help="print one JSON object with what was kept")
     c.set_defaults(func=cmd_capture)
 
+
+def _report_parser(sub) -> None:
+    """`rig calibrate report`."""
     rp = sub.add_parser("report", help="print a calibration's quality report",
                         description="Reprojection errors, coverage, stereo epipolar error and warnings of a calibration file.")
     rp.add_argument("calibration", metavar="calib.json")
     rp.add_argument("--json", action="store_true", help="print one JSON object")
     rp.set_defaults(func=cmd_report)
 
+
+def _export_parser(sub) -> None:
+    """`rig calibrate export`."""
     e = sub.add_parser("export", help="write a calibration in another tool's format",
                        description="Export to OpenCV YAML (+ rectification maps), EasyMocap, aniposelib TOML, nerfstudio transforms.json "
                                    "or COLMAP text. nerfstudio (and COLMAP, when a source is named) also get OUT/images/CAMNAME.png, one "
@@ -125,6 +124,25 @@ def register(subparsers) -> None:
     e.add_argument("--view", metavar="NNNN", help="with --images: the view to use (default: the first view every camera has)")
     e.add_argument("--json", action="store_true", help="print one JSON object with the files written")
     e.set_defaults(func=cmd_export)
+
+
+def _lens_options(p) -> None:
+    """The lens model's options, the same for `run` and `intrinsics`."""
+    p.add_argument("--outlier-px", type=float, default=1.0,
+                   help="reject views whose RMS exceeds max(this, 5 x the other views' median) (default 1.0)")
+    p.add_argument("--k3", choices=("auto", "hold", "fit"), default="auto",
+                   help="third radial term: hold it at 0 (ordinary lenses, under ~90 degrees across: it is poorly observable "
+                        "and fitted values are noise), fit it (wide-angle lenses), or auto: fit it from 10 views per camera (default)")
+    p.add_argument("--fix-aspect", action="store_true", help="hold fy = fx (square pixels): for weak data from an ordinary camera")
+    p.add_argument("--fix-principal-point", action="store_true",
+                   help="hold the principal point at the image centre: for weak data (a board in few parts of the image)")
+    p.add_argument("--tangential", choices=("auto", "hold", "fit"), default="auto",
+                   help="tangential terms p1 p2: hold them at 0 (lenses centred on the sensor), fit them, or auto: "
+                        "fit them from 10 views per camera (default)")
+    p.add_argument("--fisheye", action="append", nargs="?", const="*", metavar="NAME",
+                   help="fit OpenCV's fisheye lens model (k1..k4; wide lenses such as GoPros') to this camera, or to every camera "
+                        "when no name is given (repeatable; default: the pinhole model with k1 k2 p1 p2 k3; with the fisheye model --k3 "
+                        "holds or fits k3 and k4 together)")
 
 
 def cmd_board(args: argparse.Namespace) -> int:
