@@ -41,16 +41,17 @@ def assert_truth(report: dict) -> None:
 
 
 @pytest.mark.slow
-def test_sixty_seconds_at_30_hz_with_drops_jitter_and_drift():
-    """Acceptance: 2% frame drops, 50 us trigger-latency jitter, 100 ppm drift, 60 s at 30 Hz."""
+def test_twenty_seconds_at_30_hz_with_drops_jitter_and_drift():
+    """The acceptance conditions: 2% frame drops, 50 us trigger-latency jitter, 100 ppm drift, at 30 Hz;
+    20 s here (it runs in real time), the full 60 s in benchmarks/sync_check_sim.py."""
     cfg = parse_config(sim_rig({"drift_ppm": 100.0, "reply_jitter_us": 200.0, "seed": 3}))
-    report = sync_check(cfg, 60.0)
-    print("\nsync check, 60 s:", json.dumps({k: report[k] for k in ("pulses", "frames", "complete_sets", "mismatched_sets", "drops_detected", "skew_us", "clock_residual_us", "drift_ppm")}))
+    report = sync_check(cfg, 20.0)
+    print("\nsync check, 20 s:", json.dumps({k: report[k] for k in ("pulses", "frames", "complete_sets", "mismatched_sets", "drops_detected", "skew_us", "clock_residual_us", "drift_ppm")}))
     print("truth:", json.dumps(report["truth"]))
-    assert report["pulses"] == 1800 and report["sets"] == 1800
+    assert report["pulses"] == 600 and report["sets"] == 600
     assert_truth(report)
-    # 2% of 3600 frames: 72 expected, binomial sd 8.4; the seeded cameras drop 71 (31 + 40)
-    assert 40 < sum(report["truth"]["drops_injected"].values()) < 105
+    # 2% of 1200 frames: 24 expected, binomial sd 4.8
+    assert 10 < sum(report["truth"]["drops_injected"].values()) < 40
     assert report["skew_us"]["p99"] < 500  # 50 us jitter per camera, not a frame period
     assert abs(report["drift_ppm"] - 100.0) < 5.0
     assert report["clock_residual_us"] < 200.0  # measured figure is printed; the model's own bound is in test_sync_clock
