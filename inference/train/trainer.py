@@ -406,38 +406,19 @@ class Trainer:
                 continue
             module, groups = self._stage_module(stage)
             params = [p for g in groups for p in g["params"]]
-            optimizer = torch.optim.AdamW(groups, lr=sched.lr, weight_decay=1e-4)
-            if self._optim_state is not None and self.step > offset:
-                # Read onto the CPU (a checkpoint from a GPU opens anywhere); load_state_dict moves
-                # each state tensor onto its parameter's device, this run's.
-                optimizer.load_state_dict(self._optim_state)
-            self._optim_state = None
-            self.optimizer = optimizer  # the stage's, for inspection (tests, tools)
+            optimizer = self._stage_optimizer(groups, sched, offset)
             end = min(offset + sched.steps, stop_at)
             steps = [self._draw(stage, k, sched)[self.rank::self.world] for k in range(self.step - offset, end - offset)]
             t_stage, n_stage = time.perf_counter(), 0
             t0 = time.perf_counter()
             for batch in self._loader(stage, steps):
-                k = self.step - offset
-                for g in optimizer.param_groups:
-                    g["lr"] = self._lr(sched, k) * g.get("lr_factor", 1.0)
-                if stage == 1:
-                    (module.module if self.world > 1 else module).gamma = cfg.gamma_at(k)
-                self.model.train()
-                with self._autocast():
-                    loss, metrics, _ = module(batch)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                gnorm = torch.nn.utils.clip_grad_norm_(params, sched.grad_clip)
-                optimizer.step()
-                self.step += 1
+                metrics, gnorm = self._train_step(stage, module, optimizer, params, sched, batch, self.step - offset)
                 n_stage += 1
-                metrics = _mean_over_ranks(metrics, self.world, self.device)
                 now = time.perf_counter()
                 # step_s: this step, loading included (the time since the previous step ended);
                 # steps_per_s: the stage's mean rate in this run, evaluations and checkpoints included.
                 last = {"step": self.step, "stage": stage, "lr": optimizer.param_groups[0]["lr"], **metrics,
-                        "grad_norm": float(gnorm), "step_s": round(now - t0, 4),
+                        "grad_norm": gnorm, "step_s": round(now - t0, 4),
                         "steps_per_s": round(n_stage / max(now - t_stage, 1e-9), 4)}
                 self._log(last)
                 if self.progress is not None and self.rank == 0:
@@ -446,12 +427,7 @@ class Trainer:
                 if self.step % cfg.eval_every == 0 or end_of_stage:
                     self.evaluate(stage)
                 wall = time.monotonic()
-                timed_out = deadline is not None and wall >= deadline and self.step < stop_at
-                if deadline is not None and self.world > 1:
-                    # every process stops at the same step: the first to see the deadline decides
-                    flag = torch.tensor([1.0 if timed_out else 0.0], device=self.device if dist.get_backend() == "nccl" else "cpu")
-                    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-                    timed_out = bool(flag.item() > 0)
+                timed_out = self._past_deadline(deadline, wall, stop_at)
                 on_clock = checkpoint_minutes is not None and wall - saved_at >= 60.0 * checkpoint_minutes
                 if (self.step % cfg.checkpoint_every == 0 or self.step % cfg.eval_every == 0 or end_of_stage
                         or self.step == stop_at or stop.requested or timed_out or on_clock):
@@ -474,6 +450,43 @@ class Trainer:
                 "steps_per_s": round(done / wall_s, 4) if wall_s > 0 else None, "stopped_by": "max_minutes" if timed_out else None,
                 "device": str(self.device), "precision": self.precision, "workers": self.workers,
                 "last": last, "out": str(self.out)}
+
+    def _stage_optimizer(self, groups: list[dict], sched, offset: int) -> torch.optim.Optimizer:
+        """The stage's AdamW, with the checkpoint's state when the run resumes inside the stage."""
+        optimizer = torch.optim.AdamW(groups, lr=sched.lr, weight_decay=1e-4)
+        if self._optim_state is not None and self.step > offset:
+            # Read onto the CPU (a checkpoint from a GPU opens anywhere); load_state_dict moves
+            # each state tensor onto its parameter's device, this run's.
+            optimizer.load_state_dict(self._optim_state)
+        self._optim_state = None
+        self.optimizer = optimizer  # the stage's, for inspection (tests, tools)
+        return optimizer
+
+    def _train_step(self, stage: int, module, optimizer, params: list, sched, batch, k: int) -> tuple[dict, float]:
+        """One optimiser step at the stage's step k: (the metrics averaged over the ranks, the gradient norm)."""
+        for g in optimizer.param_groups:
+            g["lr"] = self._lr(sched, k) * g.get("lr_factor", 1.0)
+        if stage == 1:
+            (module.module if self.world > 1 else module).gamma = self.cfg.gamma_at(k)
+        self.model.train()
+        with self._autocast():
+            loss, metrics, _ = module(batch)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        gnorm = torch.nn.utils.clip_grad_norm_(params, sched.grad_clip)
+        optimizer.step()
+        self.step += 1
+        return _mean_over_ranks(metrics, self.world, self.device), float(gnorm)
+
+    def _past_deadline(self, deadline: Optional[float], wall: float, stop_at: int) -> bool:
+        """The run's time is up (and steps remain); with several processes, when any of them says so."""
+        timed_out = deadline is not None and wall >= deadline and self.step < stop_at
+        if deadline is not None and self.world > 1:
+            # every process stops at the same step: the first to see the deadline decides
+            flag = torch.tensor([1.0 if timed_out else 0.0], device=self.device if dist.get_backend() == "nccl" else "cpu")
+            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+            timed_out = bool(flag.item() > 0)
+        return timed_out
 
     @torch.no_grad()
     def _depth_absrel(self, picks: list[int]) -> Optional[dict]:
