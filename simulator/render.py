@@ -237,6 +237,59 @@ def _static_layer(scene, camera, shader, batches, boxes, rays, s, normals) -> _S
     return layer
 
 
+def _check_options(antialias, psf) -> tuple[int, float]:
+    """render()'s supersampling factor and lens blur, checked."""
+    s = DEFAULT_ANTIALIAS if antialias is None else antialias
+    if not isinstance(s, (int, np.integer)) or isinstance(s, bool) or not 1 <= s <= 8:
+        raise SimulatorError(f"antialias must be an integer from 1 to 8, got {antialias!r}")
+    try:
+        psf = float(psf)
+    except (TypeError, ValueError):
+        raise SimulatorError(f"psf must be a number of pixels, got {psf!r}") from None
+    if not 0 <= psf <= 10:
+        raise SimulatorError(f"psf must be between 0 and 10 pixels, got {psf}")
+    return s, psf
+
+
+def _contact_shadows(shader, camera: CameraModel, rays, static, ids: np.ndarray, colour: np.ndarray) -> None:
+    """Darken the floor around each person, in place. Each person darkens the floor within its own
+    rectangle; where they overlap, the factors multiply."""
+    H, W = camera.height, camera.width
+    for gx, gz in shader.shadows:
+        c = camera.R @ np.array([gx, 0.0, gz]) + camera.t
+        v0, v1, u0, u1 = (int(a) for a in rays.sphere_boxes(c, [SHADOW_RADIUS], [0], 1)[0])
+        if v0 >= v1:
+            continue
+        local = np.flatnonzero(static.floor.reshape(H, W)[v0:v1, u0:u1] & (ids.reshape(H, W)[v0:v1, u0:u1] == 0))
+        bw = u1 - u0
+        fi = (v0 + local // bw) * W + (u0 + local % bw)
+        colour[fi] *= shader.shadow_factor(static.floor_x[fi], static.floor_z[fi], [(gx, gz)])[:, None]
+
+
+def _refilter_moving(shader, camera: CameraModel, batches, boxes, rays, static, ids: np.ndarray, colour: np.ndarray,
+                     s: int, n_prims: int, n_static: int) -> None:
+    """Supersample again, in place, the silhouette pixels the moving primitives changed (the static
+    ones are filtered already)."""
+    H, W = camera.height, camera.width
+    dyn = [bx[b.ks >= n_static] for b, bx in zip(batches, boxes)]
+    dyn = np.concatenate(dyn) if dyn else np.zeros((0, 4), np.int64)
+    dyn = dyn[dyn[:, 0] < dyn[:, 1]]
+    if not dyn.size:
+        return
+    v0 = max(int(dyn[:, 0].min()) - 2, 0)
+    v1 = min(int(dyn[:, 1].max()) + 2, H)
+    u0 = max(int(dyn[:, 2].min()) - 2, 0)
+    u1 = min(int(dyn[:, 3].max()) + 2, W)
+    ids_r = ids.reshape(H, W)[v0:v1, u0:u1]
+    changed = (ids_r != static.ids.reshape(H, W)[v0:v1, u0:u1]).view(np.uint8)
+    changed = cv2.dilate(changed, np.ones((3, 3), np.uint8)).view(bool)
+    local = np.flatnonzero(_edges(ids_r) & changed)
+    if local.size:
+        bw = u1 - u0
+        ep = (v0 + local // bw) * W + (u0 + local % bw)
+        colour[ep] = _supersample(shader, batches, ids, rays, ep, s, n_prims, shadows=True)
+
+
 def render(scene: Scene, camera: CameraModel, t: float, *, antialias: Optional[int] = None, normals: bool = False,
            psf: float = DEFAULT_PSF) -> Render:
     """Render `scene` at time `t` (seconds) through `camera`.
@@ -249,15 +302,7 @@ def render(scene: Scene, camera: CameraModel, t: float, *, antialias: Optional[i
     """
     check_camera(camera)
     t = check_time(t)
-    s = DEFAULT_ANTIALIAS if antialias is None else antialias
-    if not isinstance(s, (int, np.integer)) or isinstance(s, bool) or not 1 <= s <= 8:
-        raise SimulatorError(f"antialias must be an integer from 1 to 8, got {antialias!r}")
-    try:
-        psf = float(psf)
-    except (TypeError, ValueError):
-        raise SimulatorError(f"psf must be a number of pixels, got {psf!r}") from None
-    if not 0 <= psf <= 10:
-        raise SimulatorError(f"psf must be between 0 and 10 pixels, got {psf}")
+    s, psf = _check_options(antialias, psf)
     rays = camera_rays(camera)
     H, W = camera.height, camera.width
     prims = scene.primitives(t)
@@ -280,35 +325,9 @@ def render(scene: Scene, camera: CameraModel, t: float, *, antialias: Optional[i
     r, col = _shade_won(shader, won, rays.Xf, rays.Yf, z, nrm)
     colour[r] = col
 
-    # contact shadows on the floor around each person
-    # (each person darkens the floor within its own rectangle; where they overlap, the factors multiply)
-    for gx, gz in shader.shadows:
-        c = camera.R @ np.array([gx, 0.0, gz]) + camera.t
-        v0, v1, u0, u1 = (int(a) for a in rays.sphere_boxes(c, [SHADOW_RADIUS], [0], 1)[0])
-        if v0 >= v1:
-            continue
-        local = np.flatnonzero(static.floor.reshape(H, W)[v0:v1, u0:u1] & (ids.reshape(H, W)[v0:v1, u0:u1] == 0))
-        bw = u1 - u0
-        fi = (v0 + local // bw) * W + (u0 + local % bw)
-        colour[fi] *= shader.shadow_factor(static.floor_x[fi], static.floor_z[fi], [(gx, gz)])[:, None]
-
-    # re-filter the silhouettes the moving primitives changed (static ones are filtered already)
-    dyn = [bx[b.ks >= nst] for b, bx in zip(batches, boxes)]
-    dyn = np.concatenate(dyn) if dyn else np.zeros((0, 4), np.int64)
-    dyn = dyn[dyn[:, 0] < dyn[:, 1]]
-    if s > 1 and dyn.size:
-        v0 = max(int(dyn[:, 0].min()) - 2, 0)
-        v1 = min(int(dyn[:, 1].max()) + 2, H)
-        u0 = max(int(dyn[:, 2].min()) - 2, 0)
-        u1 = min(int(dyn[:, 3].max()) + 2, W)
-        ids_r = ids.reshape(H, W)[v0:v1, u0:u1]
-        changed = (ids_r != static.ids.reshape(H, W)[v0:v1, u0:u1]).view(np.uint8)
-        changed = cv2.dilate(changed, np.ones((3, 3), np.uint8)).view(bool)
-        local = np.flatnonzero(_edges(ids_r) & changed)
-        if local.size:
-            bw = u1 - u0
-            ep = (v0 + local // bw) * W + (u0 + local % bw)
-            colour[ep] = _supersample(shader, batches, ids, rays, ep, s, len(prims), shadows=True)
+    _contact_shadows(shader, camera, rays, static, ids, colour)
+    if s > 1:
+        _refilter_moving(shader, camera, batches, boxes, rays, static, ids, colour, s, len(prims), nst)
 
     ids = ids.reshape(H, W)
     colour = colour.reshape(H, W, 3)
