@@ -122,13 +122,7 @@ def run_benchmark(
     chosen = available_providers(providers)
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         if model_path is not None:
-            from inference.model.checkpoint import model_from_record
-            from inference.runtime import read_model_info
-
-            path = Path(model_path)
-            info = read_model_info(open_session(path, ["CPUExecutionProvider"]), path)
-            model = model_from_record(info.config, info.weights, checkpoint)
-            preset = next((k for k in SIZE_PRESETS if Sizes.preset(k) == info.config.sizes), "custom")
+            model, path, preset = _recorded_model(Path(model_path), checkpoint)
         else:
             if size not in SIZE_PRESETS:
                 raise InferenceError(f"unknown size '{size}' (allowed: {', '.join(SIZE_PRESETS)})")
@@ -144,19 +138,7 @@ def run_benchmark(
         model = model.to(dev)
         inputs = [torch.from_numpy(feeds[n]).to(dev) for n in model.input_names]
         session = open_session(path, chosen, threads)
-        torch_runs: list[dict[str, float]] = []
-        ort_runs: list[float] = []
-        with torch.no_grad():
-            model.timed(*inputs)  # warm-up
-            session.run(None, feeds)
-            for i in range(repeat):
-                say(f"run {i + 1}/{repeat}")
-                torch_runs.append(model.timed(*inputs)[1])
-                time.sleep(0.05)  # let either side's idle worker threads park before the other runs
-                start = time.perf_counter()
-                session.run(None, feeds)
-                ort_runs.append((time.perf_counter() - start) * 1000.0)
-                time.sleep(0.05)
+        torch_runs, ort_runs = _alternate_runs(model, inputs, session, feeds, repeat, say)
         del session
         say("profiling ONNX Runtime per stage")
         ort_ms = ort_stage_profile(path, feeds, chosen, threads, runs=min(repeat, 3))
@@ -189,6 +171,35 @@ def run_benchmark(
         "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(), "cpus": os.cpu_count()},
         "note": "ort_ms.total is wall time; ort_ms stages are the profiler's kernel times (ort_profile_ms) scaled to sum to it",
     }
+
+
+def _recorded_model(path: Path, checkpoint: str | None):
+    """An exported model, the torch model it records it was made from and its size preset's name."""
+    from inference.model.checkpoint import model_from_record
+    from inference.runtime import read_model_info
+
+    info = read_model_info(open_session(path, ["CPUExecutionProvider"]), path)
+    model = model_from_record(info.config, info.weights, checkpoint)
+    preset = next((k for k in SIZE_PRESETS if Sizes.preset(k) == info.config.sizes), "custom")
+    return model, path, preset
+
+
+def _alternate_runs(model, inputs: list, session, feeds: dict, repeat: int, say) -> tuple[list[dict[str, float]], list[float]]:
+    """Torch (per-stage ms) and ONNX Runtime (wall ms) in turn, after one warm-up run of each."""
+    torch_runs: list[dict[str, float]] = []
+    ort_runs: list[float] = []
+    with torch.no_grad():
+        model.timed(*inputs)  # warm-up
+        session.run(None, feeds)
+        for i in range(repeat):
+            say(f"run {i + 1}/{repeat}")
+            torch_runs.append(model.timed(*inputs)[1])
+            time.sleep(0.05)  # let either side's idle worker threads park before the other runs
+            start = time.perf_counter()
+            session.run(None, feeds)
+            ort_runs.append((time.perf_counter() - start) * 1000.0)
+            time.sleep(0.05)
+    return torch_runs, ort_runs
 
 
 def _model_for(size: str, backbone: str, checkpoint: str | None, weights=None, mast3r_blocks=None):
