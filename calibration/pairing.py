@@ -8,7 +8,8 @@ or the number that ends a file name): offset +1 pairs a camera's image named aft
 the others' images of position p + 1. Before the joint solve each camera is tried against the
 reference camera (the rig's left camera) at offsets -2..+2: the pair's stereo residual with both
 lenses held (their relative pose and the board poses adjusted to both cameras' corners) at each offset. A clear winner
-other than 0 means the camera is out of step.
+other than 0 means the camera is out of step; one that still fits far worse than the two lenses fit
+their own views means no offset tried pairs it (photos not taken together, or further out of step).
 """
 from __future__ import annotations
 
@@ -29,6 +30,13 @@ MAX_VIEWS = 24  # views a residual is measured on at most (every k-th of those s
 # example that motivated the check: 0.53 against 1.05 px); a static board, or a board that moves
 # little between instants, leaves the residuals close and the images as they are.
 CLEAR_RATIO = 0.7
+# A pairing that is right fits about as well as the two cameras' own fits do (on real recordings
+# 1.2-1.5 times their RMS). A clear winner well above that is no pairing at all: the images are not
+# of the same instants (photos taken apart), or out of step by more than SEARCH reaches; applying the
+# best offset tried then pairs them with other wrong instants (a camera three instants late, tried at
+# -2, came out of the joint solve with one view of 21 left and was written).
+FIT_FACTOR = 5.0  # times the larger of the two cameras' single-camera RMS
+FIT_FLOOR_PX = 0.5
 
 
 @dataclass
@@ -40,16 +48,29 @@ class PairingCheck:
     clear: bool  # best is not 0 and wins clearly
     applied: int = 0  # the offset applied to this camera's images (given or found)
     given: bool = False  # the offset was given (--offset), not searched for
+    limit: float | None = None  # px: a pairing that fits has a residual under this (FIT_FACTOR x the fits' RMS)
+    lost: bool = False  # best is not 0 and wins clearly, yet fits no better than `limit`: no offset tried pairs it
 
     def line(self) -> str:
         """One line: which instant the images fit best, with the residuals."""
         k = self.best
-        when = f"{_count(abs(k))} instant{'s' if abs(k) > 1 else ''} {'later' if k > 0 else 'earlier'}"
-        return f"{self.camera}'s images fit best {when} ({self.residuals[k]:.2f} vs {self.residuals[0]:.2f} px)"
+        return f"{self.camera}'s images fit best {_when(k)} ({self.residuals[k]:.2f} vs {self.residuals[0]:.2f} px)"
+
+    def lost_line(self) -> str:
+        """One line: no offset tried pairs this camera's images with the reference's."""
+        k = self.best
+        return (f"{self.camera}'s images fit {self.reference}'s at none of the offsets {SEARCH[0]:+d}..{SEARCH[-1]:+d} "
+                f"({self.residuals[k]:.2f} px at best, {_when(k)}, {self.residuals[0]:.2f} px as named; a pairing that fits "
+                f"stays under {self.limit:.2f} px, {FIT_FACTOR:g} times the two cameras' own fits)")
 
     def to_dict(self) -> dict:
         return {"camera": self.camera, "reference": self.reference, "residuals_px": {f"{k:+d}": round(v, 4) for k, v in self.residuals.items()},
-                "best": self.best, "clear": self.clear, "applied": self.applied, "given": self.given}
+                "best": self.best, "clear": self.clear, "applied": self.applied, "given": self.given,
+                "limit_px": None if self.limit is None else round(self.limit, 4), "lost": self.lost}
+
+
+def _when(k: int) -> str:
+    return f"{_count(abs(k))} instant{'s' if abs(k) > 1 else ''} {'later' if k > 0 else 'earlier'}"
 
 
 def _count(n: int) -> str:
@@ -181,6 +202,8 @@ def check_pairing(reference: str, cameras: list[str], corners: dict[str, dict[st
         if 0 not in residuals:
             continue
         best = min(residuals, key=residuals.get)
-        clear = best != 0 and residuals[best] <= CLEAR_RATIO * residuals[0]
-        checks.append(PairingCheck(cam, reference, residuals, best, clear))
+        limit = max(FIT_FACTOR * max(intr[reference].rms, intr[cam].rms), FIT_FLOOR_PX)
+        wins = best != 0 and residuals[best] <= CLEAR_RATIO * residuals[0]
+        fits = residuals[best] <= limit
+        checks.append(PairingCheck(cam, reference, residuals, best, wins and fits, limit=limit, lost=wins and not fits))
     return checks

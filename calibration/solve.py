@@ -481,6 +481,13 @@ def _pair_instants(detections: DetectionSet, intr: dict[str, CameraIntrinsics], 
             intr[c] = pairing.shift_fit(intr[c], k, inst)
     say("checking that every camera's images are paired with the same instants")
     checks = pairing.check_pairing(left, order, corners, intr, object_points, opts.offsets)
+    lost = [ch for ch in checks if ch.lost]
+    if lost:  # whatever --auto-offset says: the best offset tried is another wrong pairing
+        raise CalibrationError(
+            "; ".join(ch.lost_line() for ch in lost) + ": these images are not of the same instants as "
+            f"{left}'s (taken at different times, or out of step by more than {pairing.SEARCH[-1]} instants); "
+            "a rig cannot be solved from them. Give the offset if you know it: "
+            + " ".join(f"--offset {ch.camera}=N" for ch in lost))
     found = [ch for ch in checks if ch.clear]
     if found and not opts.auto_offset:
         raise CalibrationError(
