@@ -177,10 +177,15 @@ def _read_roles(path: Path, paths: dict) -> dict[str, str]:
 
 def read_gray(path: Path, data: bytes | None = None) -> np.ndarray:
     """The image at `path` in grey levels (decoded from `data`, its bytes, when given)."""
-    if data is None:
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    else:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if data is not None and not data:  # OpenCV asserts on an empty buffer (a file cut off, a failed copy)
+        raise CalibrationError(f"{path}: cannot read this image (the file is empty)")
+    try:
+        if data is None:
+            img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        else:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    except cv2.error:
+        img = None
     if img is None:
         raise CalibrationError(f"{path}: cannot read this image (corrupt or not an image)")
     return img
