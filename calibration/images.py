@@ -76,11 +76,18 @@ def find_images(root: str | Path) -> ImageSet:
     if not root.is_dir():
         raise CalibrationError(f"{root}: no such image folder")
     paths: dict[str, dict[str, Path]] = {}
-    subdirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    subdirs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and p.name != "__MACOSX")
     for d in subdirs:
         files = {f.stem: f for f in sorted(d.iterdir()) if _is_image(f)}
         if files:
             paths[d.name] = files
+    empty = [d.name for d in subdirs if d.name not in paths]
+    if paths and empty:
+        # a camera whose folder is empty (a copy that failed, frames not yet extracted) would silently be
+        # left out of the rig
+        raise CalibrationError(
+            f"{root}: no images in the folder of camera(s) {', '.join(repr(e) for e in empty)} (cameras with images: "
+            f"{', '.join(paths)}; images are {'|'.join(s[1:] for s in IMAGE_SUFFIXES)}); add its images or move the folder out of {root}")
     paths = _match_by_number(paths)
     if not paths:
         for f in sorted(root.iterdir()):
