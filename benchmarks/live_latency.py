@@ -113,7 +113,17 @@ def main() -> int:
                          "here it shares the rig's cores and, at 0, takes about 5 %% of them from the model)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    blocks, status = measure(args)
+    result = summarize(args, blocks, status)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print_result(args, result, status)
+    return 0
 
+
+def measure(args) -> tuple[list[tuple], dict]:
+    """The model alone and the live loop in alternating blocks: (a tuple per block, the engine's status)."""
     from rig.sim.rig_config import sim_rig_config
     from rig.config import parse_config
     from rig.live.app import LiveApp
@@ -149,6 +159,11 @@ def main() -> int:
             for d in drivers:
                 d.quit()
             server.stop()
+    return blocks, status
+
+
+def summarize(args, blocks: list[tuple], status: dict) -> dict:
+    """The figures of the blocks, as the JSON result."""
     model_ms = statistics.mean(b[0] for b in blocks)
     live_fps = sum(b[1] for b in blocks) / sum(b[2] for b in blocks)
     lat = [v for b in blocks for v in b[3]]
@@ -181,20 +196,23 @@ def main() -> int:
         "sets_prepared_late": status["sets_prepared_late"],
         "viewer_nice": args.viewer_nice,
     }
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print(f"source: {result['source']}; model {result['model']['path']} ({result['model']['sizes']})")
-        print(f"model alone: {model_ms:.1f} ms per frame (blocks {result['model_ms_blocks']}) = {model_fps:.2f} fps")
-        print(f"live loop:   {live_fps:.2f} fps drawn by viewer 1 of {args.viewers}" +
-              (f" = {100 * live_fps / model_fps:.1f} % of the model's (blocks {result['live_over_model_blocks']})" if args.viewers == 1 else ""))
-        lt = result["latency_ms"]
-        print(f"latency exposure -> drawn: p50 {lt['p50']} ms, p95 {lt['p95']} ms, max {lt['max']} ms over {lt['n']} frames; "
-              f"p50 - model = {result['latency_p50_minus_model_ms']} ms "
-              f"(- the loop's own stage 1 + view p50 {loop_model_ms:.1f} ms = {result['latency_p50_minus_loop_model_ms']} ms)")
-        print(f"stage 1 runs {result['stage1_runs']}, views {result['view_runs']}; live ms per stage {status['ms']}; "
-              f"sets in {status['sets_in']}, dropped {status['sets_dropped']}, prepared late {status['sets_prepared_late']}")
-    return 0
+    return result
+
+
+def print_result(args, result: dict, status: dict) -> None:
+    """The result as lines for a reader."""
+    model_ms, model_fps, live_fps = result["model_ms"], result["model_fps"], result["live_fps_viewer1"]
+    loop_model_ms = result["loop_model_ms"]
+    print(f"source: {result['source']}; model {result['model']['path']} ({result['model']['sizes']})")
+    print(f"model alone: {model_ms:.1f} ms per frame (blocks {result['model_ms_blocks']}) = {model_fps:.2f} fps")
+    print(f"live loop:   {live_fps:.2f} fps drawn by viewer 1 of {args.viewers}" +
+          (f" = {100 * live_fps / model_fps:.1f} % of the model's (blocks {result['live_over_model_blocks']})" if args.viewers == 1 else ""))
+    lt = result["latency_ms"]
+    print(f"latency exposure -> drawn: p50 {lt['p50']} ms, p95 {lt['p95']} ms, max {lt['max']} ms over {lt['n']} frames; "
+          f"p50 - model = {result['latency_p50_minus_model_ms']} ms "
+          f"(- the loop's own stage 1 + view p50 {loop_model_ms:.1f} ms = {result['latency_p50_minus_loop_model_ms']} ms)")
+    print(f"stage 1 runs {result['stage1_runs']}, views {result['view_runs']}; live ms per stage {status['ms']}; "
+          f"sets in {status['sets_in']}, dropped {status['sets_dropped']}, prepared late {status['sets_prepared_late']}")
 
 
 if __name__ == "__main__":
