@@ -34,6 +34,26 @@ from sync.frames import Frame, FrameSet
 QUEUE_FRAMES = 32  # per camera: frames waiting for the disk before the recorder applies back-pressure
 
 
+class _Queued:
+    """A frame on its way to a writer thread, for set `n`; `taken` once a writer has it."""
+
+    __slots__ = ("n", "frame", "taken")
+
+    def __init__(self, n: int, frame: Frame):
+        self.n, self.frame, self.taken = n, frame, False
+
+
+class _FrameQueue(queue.Queue):
+    """A camera's queue of frames to write. An item is marked taken in the same locked step that
+    removes it, so an interrupted `write` can tell a frame that reached its queue from one that did not."""
+
+    def _get(self):
+        item = self.queue.popleft()
+        if item is not None:
+            item.taken = True
+        return item
+
+
 class SequenceWriter:
     def __init__(self, root: Path, cameras: list, rig_name: str = "", rate_hz: Optional[float] = None,
                  config_file: Optional[Path] = None, calibration_file: Optional[Path] = None,
@@ -86,7 +106,7 @@ class SequenceWriter:
         self.raw_bytes = 0  # what the written frames hold uncompressed: bytes_written / raw_bytes is the compression
         self.encode_cpu_s = 0.0  # CPU time the writer threads spent compressing
         self.error: Optional[StorageError] = None
-        self._queues = {e.name: queue.Queue(maxsize=QUEUE_FRAMES) for e in entries}
+        self._queues = {e.name: _FrameQueue(maxsize=QUEUE_FRAMES) for e in entries}
         if encoders:
             per_camera = encoders
         elif codec == "png":
@@ -117,21 +137,55 @@ class SequenceWriter:
         """Queue one FrameSet; returns False once the recording has stopped on an error."""
         if self.error is not None:
             return False
+        present = [(name, f) for name, f in fs.frames.items() if f is not None]
+        for name, _ in present:
+            if name not in self._queues:
+                raise StorageError(f"frame from camera '{name}' that the sequence does not record")
         n = self._n_sets
         self._n_sets += 1
         row = {"set": n, "trigger": fs.index, "host_ts_ns": fs.host_ts_ns, "frames": {}}
-        present = [(name, f) for name, f in fs.frames.items() if f is not None]
         for name in self.entries:
             row["frames"][name] = None  # a camera absent from the set is a marked gap
         with self._lock:
             self._pending[n] = {"row": row, "left": len(present), "complete": len(present) == len(self.entries)}
-        for name, frame in present:
-            if name not in self._queues:
-                raise StorageError(f"frame from camera '{name}' that the sequence does not record")
-            self._queues[name].put((n, frame))  # blocks when the disk falls behind: back-pressure
+        items = [(name, _Queued(n, frame)) for name, frame in present]
+        try:
+            for name, item in items:
+                self._queues[name].put(item)  # blocks when the disk falls behind: back-pressure
+        except KeyboardInterrupt:
+            # Ctrl-C (or `kill`, which `rig record` turns into the same) while waiting for room: the
+            # take ends by writing what is in flight, this set's frames too; then the interrupt goes on
+            try:
+                for name, item in items:
+                    if not self._queued(name, item):
+                        self._queues[name].put(item)
+            except BaseException:
+                self._unqueued(n, items)  # interrupted again: what is queued is written, the rest are gaps
+                raise
+            raise
+        except BaseException:
+            self._unqueued(n, items)
+            raise
         if not present:
             self._complete_rows()
         return self.error is None
+
+    def _queued(self, name: str, item: "_Queued") -> bool:
+        """Whether the frame reached its queue (it is there, or a writer has taken it)."""
+        q = self._queues[name]
+        with q.mutex:  # a writer takes an item (and marks it taken) under this lock
+            return item.taken or any(x is item for x in q.queue)
+
+    def _unqueued(self, n: int, items: list) -> None:
+        """Mark set `n`'s frames that never reached their queue as missing, so that its row, and every
+        row after it, is still written once the queued images are (an interrupted `write`)."""
+        lost = sum(not self._queued(name, item) for name, item in items)
+        if lost:
+            with self._lock:
+                p = self._pending[n]
+                p["left"] -= lost
+                p["complete"] = False
+                self._flush_ready_rows()
 
     def close(self) -> None:
         for q in self._queues.values():
@@ -163,7 +217,7 @@ class SequenceWriter:
             item = q.get()
             if item is None:
                 return
-            n, frame = item
+            n, frame = item.n, item.frame
             if self.error is not None:
                 continue  # drain: nothing more is written after the first failure
             rel = f"{FRAMES}/{name}/{frame.frame_id:08d}{self.entries[name].suffix}"
