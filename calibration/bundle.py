@@ -356,7 +356,7 @@ def _prior_blocks(C: int, reduced: np.ndarray, prior_std: np.ndarray | None,
     if prior_std is not None:
         ps = np.asarray(prior_std, dtype=np.float64).reshape(C, N_INTR)
         ok = np.isfinite(ps) & (ps > 0)
-        info[:, np.arange(N_INTR), np.arange(N_INTR)] += np.where(ok, 1.0 / np.where(ok, ps, 1.0) ** 2, 0.0)
+        info[:, np.arange(N_INTR), np.arange(N_INTR)] += np.where(ok, (1.0 / np.where(ok, ps, 1.0)) ** 2, 0.0)  # 1/sigma first: sigma = 1e300 is no weight, not an overflow
     if prior_information is not None:
         info += np.nan_to_num(np.asarray(prior_information, dtype=np.float64).reshape(C, N_INTR, N_INTR))
     blocks = []  # (slots in the flat intrinsics, their reduced columns, information among them)

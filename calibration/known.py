@@ -22,10 +22,12 @@ class KnownIntrinsics:
     K: np.ndarray
     dist: np.ndarray  # pinhole: k1 k2 p1 p2 k3; fisheye: k1 k2 k3 k4
     model: str = "pinhole"
+    source: str = ""  # the file the intrinsics were read from
 
-    def check(self, size: tuple[int, int], where: str) -> None:
+    def check(self, size: tuple[int, int], where: str = "") -> None:
         if tuple(size) != tuple(self.size):
-            raise CalibrationError(f"{where}: camera '{self.name}' is {self.size[0]}x{self.size[1]} there but its images are {size[0]}x{size[1]}")
+            raise CalibrationError(f"{where or self.source or 'intrinsics given'}: camera '{self.name}' is {self.size[0]}x{self.size[1]} "
+                                   f"there but its images are {size[0]}x{size[1]}")
 
 
 def _known(name: str, size, K, dist, where: str, model: str = "pinhole") -> KnownIntrinsics:
@@ -44,7 +46,7 @@ def _known(name: str, size, K, dist, where: str, model: str = "pinhole") -> Know
     dist = lens.coefficients(model, dist)
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist)) and K[0, 0] > 0 and K[1, 1] > 0 and min(size) > 0):
         raise CalibrationError(f"{where}: camera '{name}': intrinsics must be finite with positive focal lengths and size")
-    return KnownIntrinsics(name, size, K, dist, model)
+    return KnownIntrinsics(name, size, K, dist, model, where)
 
 
 def load_known(path: str | Path) -> dict[str, KnownIntrinsics]:
@@ -115,6 +117,8 @@ def parse_prior(spec: str) -> dict[str, tuple[float, bool]]:
             raise CalibrationError(f"prior {part!r}: {value!r} is not a number") from None
         if not (np.isfinite(sigma) and sigma > 0):
             raise CalibrationError(f"prior {part!r}: the sigma must be a positive number")
+        if term in out:
+            raise CalibrationError(f"prior {part!r}: {term} is given a sigma twice")
         out[term] = (sigma, percent)
     if not out:
         raise CalibrationError("the prior names no term (e.g. f=1%,c=8,dist=0.02)")

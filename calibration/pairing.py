@@ -14,6 +14,7 @@ their own views means no offset tried pairs it (photos not taken together, or fu
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -130,10 +131,8 @@ def parse_offsets(specs: list[str] | None) -> dict[str, int]:
     for spec in specs or ():
         name, eq, value = str(spec).partition("=")
         name, value = name.strip(), value.strip()
-        try:
-            k = int(value)
-        except ValueError:
-            k = None
+        # ASCII digits only: int() also reads '1_0' as 10 and other scripts' digits
+        k = int(value) if re.fullmatch(r"[+-]?[0-9]+", value) else None
         if not eq or not name or k is None:
             raise CalibrationError(f"--offset {spec!r}: expected CAMERA=N with N a whole number of instants, as cam_1=+1")
         if name in out:

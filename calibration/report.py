@@ -424,7 +424,9 @@ def format_report(calib: RigCalibration) -> str:
         lines.append(f"lens within its own fit's prior ({LENS_PRIOR_SIGMAS:g} sigma): " + ", ".join(_kept(n, lp) for n, lp in kept.items()))
     for ch in rep.get("pairing", []):
         if ch.get("given"):
-            lines.append(f"pairing: {ch['camera']}'s images shifted by {ch['applied']:+d} instants (given)")
+            k = ch["applied"]
+            lines.append(f"pairing: {ch['camera']}'s images " + (f"shifted by {k:+d} instant{'s' if abs(k) != 1 else ''} (given)" if k
+                                                                 else "kept as named (given)"))
         elif ch.get("applied"):
             lines.append(f"pairing: {ch['line']}: applied ({ch['applied']:+d})")
     held = {name: c.get("held") for name, c in rep["cameras"].items() if c.get("held")}

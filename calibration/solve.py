@@ -273,7 +273,7 @@ def _fisheye_fit(camera, size, views, names, object_points, opts, fix_k3, known,
 def _fit(camera, size, views, names, object_points, opts, fix_k3, fix_tangential, guess=None) -> _Fit:
     known = opts.known.get(camera)
     if known is not None:
-        known.check(size, f"camera '{camera}'")
+        known.check(size)
     if opts.model_of(camera) == "fisheye":
         return _fisheye_fit(camera, size, views, names, object_points, opts, fix_k3, known, guess)
     return _pinhole_fit(camera, size, views, names, object_points, opts, fix_k3, fix_tangential, known, guess)
@@ -726,6 +726,15 @@ def _adjust_rejecting_outliers(joint: _JointStart, terms: _JointTerms, intr: dic
         active[active_idx[drop]] = False
         for ci, c in enumerate(order):
             if not np.any(active & (cam_idx == ci)):
+                if intr[c].given and not intr[c].prior:  # the lens held is the likelier fault than every image
+                    raise CalibrationError(
+                        f"camera '{c}': every view was rejected as an outlier; its intrinsics were given and held "
+                        f"(--intrinsics{': ' + opts.known[c].source if c in opts.known and opts.known[c].source else ''}) "
+                        f"and its views fit them at {intr[c].rms:.2f} px: check that they are this camera's lens")
+                if c in opts.offsets:  # paired as the user said: that pairing is the first thing to doubt
+                    raise CalibrationError(
+                        f"camera '{c}': every view was rejected as an outlier with its images paired as --offset {c}={opts.offsets[c]:+d} "
+                        "gives: check that offset (without it the pairing check tries -2..+2 for this camera)")
                 raise CalibrationError(f"camera '{c}': every view was rejected as an outlier; check the images of this camera")
     assert sol is not None
     return sol, active, corners_rejected

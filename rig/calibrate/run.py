@@ -61,6 +61,7 @@ def run_inputs(images_dir: str, board_file: str, lens: LensChoices = LensChoices
     board = load_board(board_file)
     images = find_images(images_dir)
     known = _known_intrinsics(intrinsics, hold, images.cameras)
+    _check_known_sizes(known, images)
     lens.check_cameras(images.cameras)
     shifts = parse_offsets(offsets)
     check_offsets(shifts, images.paths)
@@ -106,6 +107,18 @@ def _known_intrinsics(intrinsics: str | None, hold: list[str] | None, cameras: l
     if not names:
         raise ConfigError(f"{intrinsics}: none of its cameras ({', '.join(known)}) has images here (cameras: {', '.join(cameras)})")
     return {n: known[n] for n in names}
+
+
+def _check_known_sizes(known: dict, images) -> None:
+    """A held camera's size in the file against its first image's, before minutes of detection (the
+    solve checks every image again); an image that cannot be read is left to the detection to name."""
+    import cv2
+
+    for name, k in known.items():
+        first = next(iter(sorted(images.paths[name].values())), None)
+        img = None if first is None else cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+        if img is not None:
+            k.check((img.shape[1], img.shape[0]))
 
 
 @dataclass

@@ -49,3 +49,72 @@ def test_an_empty_camera_folder_is_named_not_left_out_of_the_rig(tmp_path, board
     err = _one_line_exit_2(["calibrate", "run", "--images", tmp_path / "images", "--board", board, "-o", out], capsys)
     assert "no images in the folder of camera(s) 'mid'" in err and "__MACOSX" not in err, err
     assert not out.exists()
+
+
+def test_held_intrinsics_of_the_wrong_size_are_refused_naming_the_file_before_the_detection(tmp_path, board, capsys):
+    """Measured before: 'camera 'back': camera 'back' is 640x480 there but ...' (no file named, the
+    camera twice), after the detection of every image (25 s on the sleap-anipose recording)."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    for cam in ("a", "b"):
+        (tmp_path / "images" / cam).mkdir(parents=True)
+        for n in range(4):
+            cv2.imwrite(str(tmp_path / "images" / cam / f"{n:04d}.png"), np.zeros((48, 64), np.uint8))
+    given = tmp_path / "intr.json"
+    given.write_text(json.dumps({"format": "rig-intrinsics", "version": 1, "cameras": {"a": {
+        "width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 320, "cy": 240, "dist": [0, 0, 0, 0, 0]}}}))
+    out = tmp_path / "out.json"
+    err = _one_line_exit_2(["calibrate", "run", "--images", tmp_path / "images", "--board", board, "-o", out,
+                            "--intrinsics", given], capsys)
+    assert f"{given}: camera 'a' is 640x480 there but its images are 64x48" in err, err  # not 'the board was not found'
+    assert not out.exists()
+
+
+def test_a_prior_term_given_twice_and_offsets_int_alone_reads_are_refused():
+    from calibration.camera import CalibrationError
+    from calibration.known import parse_prior
+    from calibration.pairing import parse_offsets
+
+    with pytest.raises(CalibrationError, match="f is given a sigma twice"):
+        parse_prior("f=1%,f=2%")  # before: the last one won, silently
+    for spec in ("cam=1_0", "cam=\uff11", "cam=1.0"):  # before: int() read the first two as 10 and 1
+        with pytest.raises(CalibrationError, match="expected CAMERA=N"):
+            parse_offsets([spec])
+    assert parse_offsets(["cam=+2", "b=-1", "c=0"]) == {"cam": 2, "b": -1, "c": 0}
+
+
+def test_a_huge_prior_sigma_is_no_weight_and_no_overflow_warning():
+    """Measured before: --prior-sigma f=1e300 printed numpy's 'overflow encountered in square' on stderr."""
+    import warnings
+
+    import numpy as np
+
+    from calibration import bundle
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        blocks = bundle._prior_blocks(1, np.arange(bundle.N_INTR), np.full((1, bundle.N_INTR), 1e300), None)
+    assert all(not np.any(b[2]) for b in blocks)
+
+
+def test_held_intrinsics_no_view_fits_are_named_as_the_likely_fault():
+    """Measured before on the sleap-anipose recording with a lens of k1 = 0 held for `back`: 'every view
+    was rejected as an outlier; check the images of this camera'."""
+    from calibration.boards import CharucoSpec
+    from calibration.camera import CalibrationError
+    from calibration.known import KnownIntrinsics
+    from calibration.solve import Options, calibrate_rig
+    from calibration.synthetic import arc_rig, board_poses, observe
+
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    truth = arc_rig(3)
+    det = observe(truth, board, board_poses(20), noise_px=0.2)
+    c = truth.cameras[1]
+    wrong = KnownIntrinsics(c.name, (c.width, c.height), c.K, c.dist + [3.0, 0, 0, 0, 0], source="lenses.json")  # another lens's k1
+    with pytest.raises(CalibrationError) as err:
+        calibrate_rig(det, board, Options(known={c.name: wrong}))
+    msg = str(err.value)
+    assert f"camera '{c.name}': every view was rejected" in msg and "given and held (--intrinsics: lenses.json)" in msg, msg

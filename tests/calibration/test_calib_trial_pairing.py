@@ -36,3 +36,23 @@ def test_the_offset_given_for_a_camera_beyond_the_search_pairs_it(three_late):
     assert checks["cam_1"]["given"] and checks["cam_1"]["applied"] == 3
     assert not checks["cam_2"]["lost"] and not checks["cam_2"]["clear"]
     assert all(r < 0.5 for r in result.rig.meta["rms_px"].values()), result.rig.meta["rms_px"]
+
+
+@pytest.fixture(scope="module")
+def one_late():
+    return moving_board_session(ring_rig(3), BOARD, INSTANTS, shifts={"cam_1": 1}, noise_px=0.15, speed=SPEED)
+
+
+def test_a_given_offset_reads_as_one_instant_in_the_report(one_late):
+    from calibration.report import format_report
+
+    text = format_report(calibrate_rig(one_late, BOARD, Options(left="cam_0", offsets={"cam_1": 1, "cam_2": 0})).rig)
+    assert "pairing: cam_1's images shifted by +1 instant (given)" in text  # before: '+1 instants'
+    assert "pairing: cam_2's images kept as named (given)" in text  # before: 'shifted by +0 instants'
+
+
+def test_every_view_rejected_after_a_given_offset_names_that_offset(one_late):
+    """The mispairing forced (`--offset cam_1=0`): before, 'check the images of this camera'."""
+    with pytest.raises(CalibrationError) as err:
+        calibrate_rig(one_late, BOARD, Options(left="cam_0", offsets={"cam_1": 0}))
+    assert "with its images paired as --offset cam_1=+0 gives: check that offset" in str(err.value), err.value
