@@ -101,7 +101,7 @@ class SequenceWriter:
         self._n_sets = 0
         self.sets_written = 0
         self.complete_sets = 0
-        self.frames_written = {e.name: 0 for e in entries}
+        self.frames_written = {e.name: 0 for e in entries}  # frames, bytes: of the indexed sets (what the take holds)
         self.bytes_written = 0
         self.raw_bytes = 0  # what the written frames hold uncompressed: bytes_written / raw_bytes is the compression
         self.encode_cpu_s = 0.0  # CPU time the writer threads spent compressing
@@ -147,7 +147,7 @@ class SequenceWriter:
         for name in self.entries:
             row["frames"][name] = None  # a camera absent from the set is a marked gap
         with self._lock:
-            self._pending[n] = {"row": row, "left": len(present), "complete": len(present) == len(self.entries)}
+            self._pending[n] = {"row": row, "left": len(present), "complete": len(present) == len(self.entries), "bytes": 0, "raw": 0}
         items = [(name, _Queued(n, frame)) for name, frame in present]
         try:
             for name, item in items:
@@ -233,11 +233,10 @@ class SequenceWriter:
             if frame.sim_time_s is not None:
                 rec["sim_time_s"] = frame.sim_time_s
             with self._lock:
-                self.bytes_written += nbytes
-                self.raw_bytes += self.entries[name].raw_bytes
-                self.frames_written[name] += 1
                 p = self._pending[n]
                 p["row"]["frames"][name] = rec
+                p["bytes"] += nbytes
+                p["raw"] += self.entries[name].raw_bytes
                 p["left"] -= 1
                 if p["left"] == 0:
                     self._flush_ready_rows()
@@ -285,6 +284,12 @@ class SequenceWriter:
             lines.append(json.dumps(p["row"], separators=(",", ":")))
             self.sets_written += 1
             self.complete_sets += p["complete"]
+            # counted once the row is in the index: a frame written for a set that a failure kept
+            # out of the index (another camera's frame hit the full disk) is not in the take
+            for name, rec in p["row"]["frames"].items():
+                self.frames_written[name] += rec is not None
+            self.bytes_written += p["bytes"]
+            self.raw_bytes += p["raw"]
             self._next_row += 1
         try:
             if lines:
