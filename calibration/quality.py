@@ -17,6 +17,10 @@ import numpy as np
 SPREAD_WARN = 0.01  # a relative focal spread above this makes the camera "weak"
 COVERAGE_WEAK = 0.25  # board coverage of the image under this makes it "weak"
 RMS_UNUSABLE_PX = 2.0  # an RMS above this: no lens model explains the corners
+# A camera the joint rig fit leaves fewer views than this (the rest rejected as outliers) is unusable:
+# its pose rests on what survived of a set that mostly did not fit (views paired with the wrong
+# instants, a lens that is not its own), however small its RMS over those few.
+MIN_JOINT_VIEWS = 4
 MIN_RESAMPLED_VIEWS = 5  # below this the spread is not measured
 MAX_GROUPS = 10
 
@@ -42,7 +46,7 @@ def spread_reason(spread: float | None, n_views: int) -> str | None:
     return None
 
 
-def verdict(rms_px: float | None, reasons: list[str]) -> str:
-    if rms_px is None or rms_px > RMS_UNUSABLE_PX:
+def verdict(rms_px: float | None, reasons: list[str], too_few_views: bool = False) -> str:
+    if rms_px is None or rms_px > RMS_UNUSABLE_PX or too_few_views:
         return "unusable"
     return "weak" if reasons else "good"

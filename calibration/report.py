@@ -18,7 +18,7 @@ import numpy as np
 from calibration.boards import BoardSpec
 from calibration.bundle import intrinsic_names
 from calibration.camera import CameraModel, RigCalibration
-from calibration.quality import SPREAD_WARN, spread_reason, verdict
+from calibration.quality import MIN_JOINT_VIEWS, SPREAD_WARN, spread_reason, verdict
 from calibration.result import CalibrationResult
 
 COVERAGE_GRID = (8, 6)  # cells across, down
@@ -189,8 +189,14 @@ def build_report(result: CalibrationResult) -> dict[str, Any]:
     for ci, name in enumerate(names):
         per_camera[name] = _camera_entry(result, ci, sq)
         reasons = _camera_warnings(result, ci, per_camera[name])
+        joint_rejected = sum(1 for r in result.rejected if r.camera == name and r.stage == "joint")
+        too_few = joint_rejected > 0 and per_camera[name]["views_used"] < MIN_JOINT_VIEWS
+        if too_few:
+            reasons.insert(0, f"the joint rig fit kept only {per_camera[name]['views_used']} of its views ({joint_rejected} rejected as "
+                              f"outliers; {MIN_JOINT_VIEWS} are needed): its views do not fit the others' (images paired with the "
+                              "wrong instants, or a lens that is not its own)")
         warnings += [f"camera '{name}': {r}" for r in reasons]
-        per_camera[name]["verdict"] = verdict(per_camera[name]["rms_px"], reasons)
+        per_camera[name]["verdict"] = verdict(per_camera[name]["rms_px"], reasons, too_few)
         per_camera[name]["reasons"] = reasons
 
     shared_views = [v for v, cams in per_view.items() if len(cams) >= 2]

@@ -206,11 +206,21 @@ def _unusable_cameras(rig) -> list[str]:
 
 
 def _unusable_message(rig, unusable: list[str], output) -> str:
-    from calibration.quality import RMS_UNUSABLE_PX
+    from calibration.quality import MIN_JOINT_VIEWS, RMS_UNUSABLE_PX
 
-    rms = ", ".join(f"'{n}' {rig.meta['rms_px'][n]:.2f} px" for n in unusable)
+    cams = rig.meta["report"]["cameras"]
+    rms = {n: rig.meta["rms_px"].get(n) for n in unusable}
+    high = [n for n in unusable if rms[n] is None or rms[n] > RMS_UNUSABLE_PX]
+    few = [n for n in unusable if n not in high]  # unusable by the views the joint fit kept
+    why = []
+    if high:
+        why.append("reprojection RMS " + ", ".join(f"'{n}' " + ("unknown" if rms[n] is None else f"{rms[n]:.2f} px") for n in high)
+                   + f" (above {RMS_UNUSABLE_PX:g} px)")
+    if few:
+        why.append("the joint rig fit kept only " + ", ".join(f"{cams[n]['views_used']} of '{n}''s views" for n in few)
+                   + f" (the rest rejected as outliers; {MIN_JOINT_VIEWS} are needed)")
     stalled = any("did not converge" in w for w in rig.meta["report"]["warnings"])
-    return (f"the calibration is unusable: reprojection RMS {rms} (above {RMS_UNUSABLE_PX:g} px)"
+    return (f"the calibration is unusable: {'; '.join(why)}"
             f"{'; the joint adjustment did not converge' if stalled else ''}; nothing was written to {output}. "
             "Check that the board file describes the board shown (its size, in the board's orientation) "
             "and that every camera's images of one instant share a name or number")

@@ -118,3 +118,27 @@ def test_held_intrinsics_no_view_fits_are_named_as_the_likely_fault():
         calibrate_rig(det, board, Options(known={c.name: wrong}))
     msg = str(err.value)
     assert f"camera '{c.name}': every view was rejected" in msg and "given and held (--intrinsics: lenses.json)" in msg, msg
+
+
+def test_a_camera_the_joint_fit_leaves_with_under_four_views_is_unusable_and_not_written():
+    """Measured before: a held lens with another lens's p1 kept 2 of its camera's 20 views in the joint
+    fit, verdict 'weak', and `run` wrote the rig; on the sleap-anipose recording with `side` three
+    instants late and `--offset side=-2`, 1 of 21 views, written (exit 0)."""
+    from calibration.boards import CharucoSpec
+    from calibration.known import KnownIntrinsics
+    from calibration.solve import Options, calibrate_rig
+    from calibration.synthetic import arc_rig, board_poses, observe
+    from rig.calibrate.run import _unusable_cameras, _unusable_message
+
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    truth = arc_rig(3)
+    det = observe(truth, board, board_poses(20), noise_px=0.2)
+    c = truth.cameras[1]
+    wrong = KnownIntrinsics(c.name, (c.width, c.height), c.K, c.dist + [0, 0, 0.05, 0, 0])
+    rig = calibrate_rig(det, board, Options(known={c.name: wrong})).rig
+    entry = rig.meta["report"]["cameras"][c.name]
+    assert entry["views_used"] < 4 and entry["verdict"] == "unusable", entry
+    assert entry["reasons"][0].startswith("the joint rig fit kept only"), entry["reasons"]
+    assert _unusable_cameras(rig) == [c.name]
+    msg = _unusable_message(rig, [c.name], "out.json")
+    assert f"the joint rig fit kept only {entry['views_used']} of '{c.name}''s views" in msg and "\n" not in msg, msg
