@@ -17,7 +17,7 @@ import numpy as np
 
 from calibration.boards import BoardSpec
 from calibration.bundle import intrinsic_names
-from calibration.camera import CameraModel, RigCalibration
+from calibration.camera import CalibrationError, CameraModel, RigCalibration
 from calibration.quality import MIN_JOINT_VIEWS, SPREAD_WARN, spread_reason, verdict
 from calibration.result import CalibrationResult
 
@@ -378,7 +378,17 @@ def summary_meta(result: CalibrationResult, board: BoardSpec) -> dict[str, Any]:
 
 
 def format_report(calib: RigCalibration) -> str:
-    """Human-readable report of a calibration file (measurements when the file carries them)."""
+    """Human-readable report of a calibration file (measurements when the file carries them); a
+    `report` section that is not as `rig calibrate run` writes it (edited by hand, another tool) is
+    CalibrationError (one line), not a traceback."""
+    try:
+        return _format_report(calib)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        raise CalibrationError(f"the calibration's measurements (its 'report') are malformed ({type(exc).__name__}: {exc}): "
+                               "the file was edited, or written by another tool; `rig calibrate run` writes them again") from None
+
+
+def _format_report(calib: RigCalibration) -> str:
     meta = calib.meta
     rep = meta.get("report")
     lines = []

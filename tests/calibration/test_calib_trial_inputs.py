@@ -142,3 +142,30 @@ def test_a_camera_the_joint_fit_leaves_with_under_four_views_is_unusable_and_not
     assert _unusable_cameras(rig) == [c.name]
     msg = _unusable_message(rig, [c.name], "out.json")
     assert f"the joint rig fit kept only {entry['views_used']} of '{c.name}''s views" in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("damage", ["lens_prior_without_beyond", "lens_prior_a_string", "pairing_without_keys"])
+def test_a_damaged_report_section_is_one_line(tmp_path, capsys, damage):
+    """Measured before: `rig calibrate report` on a file whose report was edited ended in a KeyError or
+    TypeError traceback (exit 1)."""
+    import json
+
+    from calibration.boards import CharucoSpec
+    from calibration.solve import Options, calibrate_rig
+    from calibration.synthetic import arc_rig, board_poses, observe
+
+    board = CharucoSpec(7, 5, 0.08, 0.06, "DICT_5X5_100")
+    rig = calibrate_rig(observe(arc_rig(2), board, board_poses(12), noise_px=0.2), board, Options()).rig
+    path = tmp_path / "calib.json"
+    rig.save(path)
+    doc = json.loads(path.read_text())
+    name = rig.names[-1]
+    if damage == "lens_prior_without_beyond":
+        doc["report"]["cameras"][name]["lens_prior"] = {"kept": False}
+    elif damage == "lens_prior_a_string":
+        doc["report"]["cameras"][name]["lens_prior"] = "kept"
+    else:
+        doc["report"]["pairing"] = [{"camera": name}, 3]
+    path.write_text(json.dumps(doc))
+    err = _one_line_exit_2(["calibrate", "report", path], capsys)
+    assert "its 'report') are malformed" in err, err
