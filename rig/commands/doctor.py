@@ -4,9 +4,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 from pathlib import Path
 
 FIX_SCRIPT_HEAD = "#!/usr/bin/env bash\n# Fixes `rig doctor` proposes"
+BENCH_MAX_BYTES = 16 << 20  # `rig model bench --json` writes a few kilobytes
 
 
 def register(sub) -> None:
@@ -46,16 +48,25 @@ def _check_inputs(args: argparse.Namespace):
     output = args.output if args.output is not None else cfg.resolve(cfg.storage)
     if output.exists() and not output.is_dir():
         raise ConfigError(f"--output {output}: is a file, not a folder")
+    from rig.doctor.space import existing
+
+    above = existing(output)
+    if not above.is_dir():  # a take folder cannot be made under a file
+        raise ConfigError(f"--output {output}: {above} is a file, not a folder")
     bench = None
     if args.bench is not None:
         from rig.doctor.compute import bench_rate
 
         try:
-            bench = json.loads(args.bench.read_text())
+            with open(args.bench, "rb") as f:  # bounded: a device (/dev/zero) never ends
+                data = f.read(BENCH_MAX_BYTES + 1)
+            if len(data) > BENCH_MAX_BYTES:
+                raise ValueError(f"over {BENCH_MAX_BYTES >> 20} MiB")
+            bench = json.loads(data.decode())
             bench_rate(bench)
         except OSError as exc:
             raise ConfigError(f"--bench {args.bench}: cannot read ({exc.strerror})") from None
-        except (ValueError, AttributeError, TypeError) as exc:
+        except (ValueError, AttributeError, TypeError, OverflowError) as exc:
             raise ConfigError(f"--bench {args.bench}: not `rig model bench --json` output ({exc})") from None
     fix = args.fix_script
     if fix is not None:
@@ -63,9 +74,12 @@ def _check_inputs(args: argparse.Namespace):
             raise ConfigError(f"--fix-script {fix}: is a folder; name a file")
         if not fix.parent.is_dir():
             raise ConfigError(f"--fix-script {fix}: folder {fix.parent} does not exist")
+        if fix.exists() and not fix.is_file():  # a device or a pipe: reading it could block or never end
+            raise ConfigError(f"--fix-script {fix}: not a regular file; name a file")
         if fix.exists():
             try:
-                head = fix.read_text(errors="replace")[:len(FIX_SCRIPT_HEAD)]
+                with open(fix, "rb") as f:
+                    head = f.read(len(FIX_SCRIPT_HEAD.encode())).decode(errors="replace")
             except OSError:
                 head = ""
             if head != FIX_SCRIPT_HEAD:  # only an earlier fix script is replaced, never another file
@@ -73,6 +87,10 @@ def _check_inputs(args: argparse.Namespace):
         if not os.access(fix.parent, os.W_OK):
             raise ConfigError(f"--fix-script {fix}: cannot write in {fix.parent}")
     return cfg, output, bench
+
+
+def _stop_on_sigterm(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
@@ -84,6 +102,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     from rig.doctor.report import fix_script, text_lines, to_json
 
     cfg, output, bench = _check_inputs(args)
+    # `kill` (a time limit, a service manager) ends the doctor as Ctrl-C does: the write test's file is removed
+    signal.signal(signal.SIGTERM, _stop_on_sigterm)
     checks = run_checks(cfg, Host(args.root), output=output, minutes=args.minutes, bench=bench, bench_path=args.bench,
                         test_bytes=args.write_test_mb << 20)
     config = str(cfg.path.resolve()) if cfg.path else None

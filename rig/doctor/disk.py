@@ -12,7 +12,6 @@ from rig.doctor.space import existing, space
 from rig.storage.disk import measure_write_rate
 
 AREA = "disk"
-BLOCK = 4 << 20  # the smallest test: a few of the recorder's writes
 TEST_BYTES = 256 << 20   # the write test stops after this much...
 TEST_SECONDS = 3.0       # ...or this long, whichever comes first, and never takes over a tenth of the free room
 # A take writes more than its frames (the index, per-set syncs for crash safety): a disk within this
@@ -64,8 +63,14 @@ def checks(host: Host, needs: RigNeeds, output: Path, minutes: float, test_bytes
         out.append(Check(AREA, f"write rate {output}", FAIL, f"{folder} is not writable", f">= {rate(need_rate)}",
                          None, "rig record cannot write its take there"))
         return out
-    size = test_bytes if sp is None else max(BLOCK, min(test_bytes, sp.avail // 10))
+    size = test_bytes if sp is None else min(test_bytes, sp.avail // 10)  # never a tenth of the free room
     written, seconds = write_rate(folder, size)
+    if written == 0:  # too little room to measure anything: say so, not that the disk is slow
+        out.append(Check(AREA, f"write rate {where}", WARN, "not measured: too little free room for the write test",
+                         f">= {rate(need_rate)}", None,
+                         "the test takes at most a tenth of the free room and needs a megabyte at least: "
+                         "free room or record elsewhere, then run rig doctor again"))
+        return out
     measured = written / seconds if seconds > 0 else 0.0
     st = rate_status(measured, need_rate)
     note = {FAIL: "the disk cannot keep up: fewer cameras, smaller frames, a lower rate, or a faster disk",

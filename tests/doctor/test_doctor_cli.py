@@ -53,3 +53,48 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path):
     assert notes.read_text() == "mine\n"  # never overwritten
     (tmp_path / "file").write_text("")
     assert_one_line_error(run_rig("doctor", "-c", cfg, "--output", tmp_path / "file"), "is a file")
+
+
+def test_inputs_that_are_devices_pipes_or_under_a_file_are_one_line_and_exit_2(tmp_path):
+    """An existing --fix-script is read to tell an earlier fix script from another file: a device that
+    never ends (/dev/zero: the whole of it was read into memory until the process was killed) or a pipe
+    (its open blocks) is refused unread; --bench reads a bounded amount; a take folder under a file
+    cannot be made (it was a failed write-rate check, exit 1)."""
+    import os
+
+    cfg = sim_config(tmp_path)
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--fix-script", "/dev/zero", timeout=60), "not a regular file")
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--fix-script", fifo, timeout=60), "not a regular file")
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--bench", "/dev/zero", timeout=60), "not `rig model bench --json` output")
+    (tmp_path / "file").write_text("")
+    assert_one_line_error(run_rig("doctor", "-c", cfg, "--output", tmp_path / "file" / "takes"), "file is a file, not a folder")
+
+
+def test_sigterm_during_the_write_test_removes_its_file(tmp_path):
+    """`kill` (a time limit, a service manager) during the write test: the test file goes, as with
+    Ctrl-C; before, up to 256 MB stayed hidden in the take folder."""
+    import os
+    import signal
+    import sys
+    import time
+
+    cfg = sim_config(tmp_path)
+    out = tmp_path / "takes"
+    out.mkdir()
+    test_file = out / ".rig-disk-write-test.tmp"
+    proc = subprocess.Popen([sys.executable, "-m", "rig", "doctor", "-c", str(cfg), "--output", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.monotonic()
+        while not test_file.exists() and proc.poll() is None and time.monotonic() - t0 < 60:
+            time.sleep(0.001)
+        assert test_file.exists(), "the write test was not seen"
+        os.kill(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130 and "Traceback" not in err
+    assert list(out.iterdir()) == []

@@ -126,3 +126,16 @@ def test_gpu_probe_runs_in_the_rigs_python_for_real(fake):
 
     seen = compute.runtime_gpus(Host(fake.root))
     assert "version" in seen["onnxruntime"] and isinstance(seen["onnxruntime"]["providers"], list)
+
+
+def test_write_test_takes_at_most_a_tenth_of_the_free_room_and_says_when_it_cannot_measure(tmp_path, fake):
+    out = tmp_path / "out"
+    out.mkdir()
+    fake.program("df", f"Mounted on 1B-blocks Avail\n/data {10**9} {20 << 20}\n")  # 20 MiB free
+    checks = disk.checks(fake.host(), needs_of(SMALL), out, minutes=10, test_bytes=256 << 20)
+    assert "2.0 MiB in" in checks[1].measured  # a tenth of it (it took 4 MiB, a fifth)
+    fake.program("df", f"Mounted on 1B-blocks Avail\n/data {10**9} {5 << 20}\n")  # a tenth is under the test's megabyte
+    rate = disk.checks(fake.host(), needs_of(SMALL), out, minutes=10, test_bytes=256 << 20)[1]
+    # before: "0.0 MB/s (0.0 MiB in 0.00 s)", a failure saying the disk cannot keep up
+    assert rate.status == WARN and rate.measured.startswith("not measured") and "cannot keep up" not in rate.note
+    assert list(out.iterdir()) == []
