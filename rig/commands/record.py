@@ -7,6 +7,11 @@ import sys
 from pathlib import Path
 
 
+# Deflate, PNG's compression, never stores data more than 1032 times smaller: a stated ratio above
+# this is a mistake, and it would let the disk check pass any disk.
+MAX_COMPRESS_RATIO = 1000.0
+
+
 def register(sub) -> None:
     p = sub.add_parser("record", help="record every camera of the rig in sync to a sequence folder; validate, repair or align one, fetch its card videos")
     p.add_argument("action", nargs="?", choices=("validate", "repair", "align", "fetch"),
@@ -31,7 +36,7 @@ def register(sub) -> None:
                         "sensor noise; about 65 ms of CPU per 1280x720 frame, see docs/sequence-format.md) instead of raw netpbm")
     p.add_argument("--compress-ratio", type=float, metavar="R",
                    help="record with --compress: the compression ratio the disk check counts (an earlier take's "
-                        "compression_ratio); without it compression counts for nothing in the check")
+                        "compression_ratio, 1 to 1000); without it compression counts for nothing in the check")
     p.add_argument("--no-disk-check", action="store_true",
                    help="record: skip measuring the output disk (a short test file) and refusing a rig whose data rate "
                         "it cannot take")
@@ -235,6 +240,10 @@ def _record(args) -> int:
         raise ConfigError("record: --seconds and --sets must be positive")
     if args.compress_ratio is not None and args.compress is None:
         raise ConfigError("record: --compress-ratio counts only with --compress png")
+    if args.compress_ratio is not None and not 1.0 <= args.compress_ratio <= MAX_COMPRESS_RATIO:
+        # inf (or 1e308) divided the rig's data rate to nothing: the disk check passed any disk
+        raise ConfigError(f"record: --compress-ratio must be from 1 to {MAX_COMPRESS_RATIO:g} (an earlier take's "
+                          f"compression_ratio), got {args.compress_ratio:g}")
     cfg = load_config(args.config)
     new_output_folder(args.out)  # a take is never written over or into another folder's files
     status = StatusLine(sys.stderr)

@@ -189,3 +189,13 @@ def test_sets_far_behind_the_cameras_are_skipped_counted_and_said(tmp_path):
     assert len(heard) == 1 and "behind the cameras" in heard[0]  # said once, counted every time
     d = result.to_dict()
     assert d["sets_skipped"] == 2 and d["frames_skipped"] == 2
+
+
+@pytest.mark.parametrize("ratio", ["inf", "1e308", "nan", "0", "-2", "1001"])
+def test_a_compress_ratio_that_no_png_reaches_is_refused(tmp_path, ratio):
+    """inf or 1e308 divided the rig's data rate to nothing: the disk check passed any disk."""
+    seq = tmp_path / "seq"
+    line = assert_one_line_error(run_rig("record", "-c", rig_file(tmp_path), "-o", seq, "--sets", 2, "--compress", "png",
+                                         "--compress-ratio", ratio), "--compress-ratio must be")
+    assert "1 to 1000" in line or "at least 1" in line
+    assert not seq.exists()
