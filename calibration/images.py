@@ -37,6 +37,7 @@ class ImageSet:
     root: Path
     paths: dict[str, dict[str, Path]]
     roles: dict[str, str] = field(default_factory=dict)  # "left"/"right" -> camera name
+    empty: list[str] = field(default_factory=list)  # camera folders with no images (find_camera_images)
 
     @property
     def cameras(self) -> list[str]:
@@ -149,10 +150,13 @@ def find_camera_images(root: str | Path, cameras: list[str] | None = None) -> Im
     if not root.is_dir():
         raise CalibrationError(f"{root}: no such image folder")
     paths: dict[str, dict[str, Path]] = {}
-    for d in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+    subdirs = [p for p in sorted(root.iterdir()) if p.is_dir() and not p.name.startswith(".") and p.name != "__MACOSX"]
+    for d in subdirs:
         files = {f.stem: f for f in sorted(d.iterdir()) if _is_image(f)}
         if files:
             paths[d.name] = files
+    # each camera is calibrated on its own: one whose folder is empty is listed, not a reason to stop
+    empty = [d.name for d in subdirs if d.name not in paths] if paths else []
     if not paths:
         files = {f.stem: f for f in sorted(root.iterdir()) if _is_image(f)}
         if files:
@@ -164,7 +168,8 @@ def find_camera_images(root: str | Path, cameras: list[str] | None = None) -> Im
         if missing:
             raise CalibrationError(f"{root}: no images of camera {', '.join(repr(c) for c in missing)} (cameras: {', '.join(paths)})")
         paths = {c: paths[c] for c in cameras}
-    return ImageSet(root, paths)
+        empty = []
+    return ImageSet(root, paths, empty=empty)
 
 
 def _read_roles(path: Path, paths: dict) -> dict[str, str]:

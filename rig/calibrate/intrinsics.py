@@ -60,6 +60,8 @@ def calibrate_lenses(inputs: IntrinsicsInputs, output: str | Path) -> Intrinsics
     status = StatusLine()
     object_points = board.object_points()[1]
     results, failed = {}, {}
+    for name in images.empty:  # before: left out without a word
+        failed[name] = f"camera '{name}': no images in its folder {Path(images.root) / name}"
     for name in images.cameras:
         status.update(f"calibrating {name}", force=True)
         try:

@@ -169,3 +169,18 @@ def test_a_damaged_report_section_is_one_line(tmp_path, capsys, damage):
     path.write_text(json.dumps(doc))
     err = _one_line_exit_2(["calibrate", "report", path], capsys)
     assert "its 'report') are malformed" in err, err
+
+
+def test_intrinsics_lists_an_empty_camera_folder_as_failed(tmp_path, board, shared_data):
+    """`rig calibrate intrinsics` calibrates each camera on its own: an empty camera folder is listed
+    in `failed` (before: left out without a word), the others still calibrated."""
+    from tests.calibration.cli_helpers import run_json
+
+    xi = shared_data / "xi-stereo-chessboard"
+    (tmp_path / "images" / "left").mkdir(parents=True)
+    (tmp_path / "images" / "right").mkdir()
+    for f in sorted(xi.glob("left*.jpg"))[:8]:
+        (tmp_path / "images" / "left" / f.name).symlink_to(f)
+    doc = run_json("calibrate", "intrinsics", "--images", tmp_path / "images", "--board", board, "-o", tmp_path / "intr.json")
+    assert list(doc["cameras"]) == ["left"]
+    assert doc["failed"] == {"right": f"camera 'right': no images in its folder {tmp_path / 'images' / 'right'}"}, doc["failed"]
