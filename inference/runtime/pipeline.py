@@ -126,6 +126,9 @@ def open_session(path: str | os.PathLike, providers: list[str] | None = None, th
         raise InferenceError(f"{path}: no such model file")
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # ONNX Runtime logs a failed load (a truncated data file, a corrupt graph) to stderr itself, in
+    # several lines, before it raises; the exception below says it in one, so only fatal logs print
+    opts.log_severity_level = 4
     if threads:
         opts.intra_op_num_threads = threads
     if not spinning:
@@ -147,6 +150,11 @@ def open_session(path: str | os.PathLike, providers: list[str] | None = None, th
         if missing:
             raise InferenceError(f"{path}: its weights file {Path(missing.group(1)).name} is not beside it; copy the "
                                  f"model's files together (M.onnx, its parts and M.onnx.*.data)") from None
+        if re.search(r"External initializer: .* out of bounds or can not be read in full", str(exc)):
+            # the data file beside it is shorter than the graph says (a copy cut short, another export's)
+            data = sorted(p.name for p in path.resolve().parent.glob(path.name + ".*.data"))
+            raise InferenceError(f"{path}: its weights file {data[0] if data else path.name + '.*.data'} is shorter than the model "
+                                 "needs (cut short, or from another export); copy the model's files together again") from None
         raise InferenceError(f"{path}: ONNX Runtime cannot load it ({str(exc).splitlines()[0]})") from None
 
 
