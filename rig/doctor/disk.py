@@ -9,6 +9,7 @@ from rig.doctor.check import FAIL, OK, WARN, Check, mib, rate
 from rig.doctor.host import Host
 from rig.doctor.needs import RigNeeds
 from rig.doctor.space import existing, space
+from rig.errors import StorageError
 from rig.storage.disk import measure_write_rate
 
 AREA = "disk"
@@ -64,7 +65,12 @@ def checks(host: Host, needs: RigNeeds, output: Path, minutes: float, test_bytes
                          None, "rig record cannot write its take there"))
         return out
     size = test_bytes if sp is None else min(test_bytes, sp.avail // 10)  # never a tenth of the free room
-    written, seconds = write_rate(folder, size)
+    try:
+        written, seconds = write_rate(folder, size)
+    except StorageError as exc:  # the disk the doctor is to judge failed the test (EIO, a quota): a finding
+        out.append(Check(AREA, f"write rate {where}", FAIL, str(exc), f">= {rate(need_rate)}", None,
+                         "rig record cannot write its take there"))
+        return out
     if written == 0:  # too little room to measure anything: say so, not that the disk is slow
         out.append(Check(AREA, f"write rate {where}", WARN, "not measured: too little free room for the write test",
                          f">= {rate(need_rate)}", None,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import secrets
 import shutil
 import time
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from typing import Optional
 from rig.errors import StorageError
 from rig.storage.layout import stored_layout
 
-TEST_FILE = ".rig-disk-write-test.tmp"
+TEST_FILE = ".rig-disk-write-test"  # + "-PID-RANDOM.tmp": a name of its own, never a leftover's or another measurement's
 CHUNK = 8 << 20  # large writes: what the recorder's frames are, and what a disk streams fastest
 
 
@@ -79,7 +80,7 @@ def measure_write_rate(folder: str | os.PathLike, seconds: float = 0.5, max_byte
     chunk = min(CHUNK, budget)
     buf = mmap.mmap(-1, chunk)  # page-aligned, as O_DIRECT needs
     buf.write(os.urandom(1 << 16) * (chunk >> 16))  # not zeros: a compressing filesystem would flatter itself
-    path = folder / TEST_FILE
+    path = folder / f"{TEST_FILE}-{os.getpid()}-{secrets.token_hex(4)}.tmp"
     try:
         return _timed_write(path, buf, budget, seconds, direct=True) or _timed_write(path, buf, budget, seconds, direct=False)
     except OSError as exc:
@@ -88,7 +89,7 @@ def measure_write_rate(folder: str | os.PathLike, seconds: float = 0.5, max_byte
         buf.close()
         try:
             path.unlink()
-        except FileNotFoundError:
+        except OSError:
             pass
 
 

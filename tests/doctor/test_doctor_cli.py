@@ -38,7 +38,7 @@ def test_doctor_runs_for_real_on_this_host(tmp_path):
     # its own measurements (a loaded disk may measure slower this time): the exit status follows its verdict
     assert lines[-1].split(":")[0] in ("ok", "warn", "fail") and text.returncode == (1 if lines[-1].startswith("fail") else 0)
     assert sum(1 for line in lines[:-1] if line[:6] in ("ok    ", "warn  ", "FAIL  ")) == len(doc["checks"])
-    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".rig-doctor")] == []
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".rig-disk-write-test")] == []
 
 
 def test_bad_input_is_one_line_and_exit_2(tmp_path):
@@ -83,14 +83,13 @@ def test_sigterm_during_the_write_test_removes_its_file(tmp_path):
     cfg = sim_config(tmp_path)
     out = tmp_path / "takes"
     out.mkdir()
-    test_file = out / ".rig-disk-write-test.tmp"
     proc = subprocess.Popen([sys.executable, "-m", "rig", "doctor", "-c", str(cfg), "--output", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         t0 = time.monotonic()
-        while not test_file.exists() and proc.poll() is None and time.monotonic() - t0 < 60:
+        while not any(out.iterdir()) and proc.poll() is None and time.monotonic() - t0 < 60:
             time.sleep(0.001)
-        assert test_file.exists(), "the write test was not seen"
+        assert any(out.iterdir()), "the write test was not seen"
         os.kill(proc.pid, signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -98,3 +97,39 @@ def test_sigterm_during_the_write_test_removes_its_file(tmp_path):
             proc.kill()
     assert proc.returncode == 130 and "Traceback" not in err
     assert list(out.iterdir()) == []
+
+
+def test_a_disk_that_fails_the_write_test_is_a_failed_check_not_a_crash(tmp_path):
+    """A write error during the test (here EFBIG from a file size limit; on a venue's disk EIO or a
+    quota) is what the doctor is there to find: a failed check in the report, which goes on. Before,
+    the doctor stopped with `rig: error: ... cannot measure the disk's write rate` and no report."""
+    import resource
+    import sys
+
+    cfg = sim_config(tmp_path)
+    out = tmp_path / "takes"
+    out.mkdir()
+
+    def small_files():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, 1 << 20))  # writes past 1 MiB fail (EFBIG)
+
+    proc = subprocess.run([sys.executable, "-m", "rig", "doctor", "-c", str(cfg), "--output", str(out), "--json"],
+                          capture_output=True, text=True, timeout=120, preexec_fn=small_files)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    doc = json.loads(proc.stdout)
+    rate = next(c for c in doc["checks"] if c["name"].startswith("write rate"))
+    assert rate["status"] == "fail" and "File too large" in rate["measured"]
+    assert {c["area"] for c in doc["checks"]} == set(AREAS)  # the other areas were checked too
+    assert list(out.iterdir()) == []
+
+
+def test_a_leftover_test_file_or_folder_does_not_stop_the_write_test(tmp_path):
+    """The write test's file has a name of its own: a leftover of that name (here a folder, the
+    worst case) no longer stops `rig doctor` and `rig record` with 'Is a directory'."""
+    cfg = sim_config(tmp_path)
+    out = tmp_path / "takes"
+    (out / ".rig-disk-write-test.tmp").mkdir(parents=True)
+    proc = run_rig("doctor", "-c", cfg, "--output", out, "--json", "--write-test-mb", "8")
+    rate = next(c for c in json.loads(proc.stdout)["checks"] if c["name"].startswith("write rate"))
+    assert "8.0 MiB in" in rate["measured"], proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == [".rig-disk-write-test.tmp"]
