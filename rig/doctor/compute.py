@@ -41,11 +41,12 @@ def _count_ranges(text: str) -> Optional[int]:
     n = 0
     try:
         for part in text.split(","):
-            a, _, b = part.strip().partition("-")
-            n += (int(b) - int(a) + 1) if b else 1
+            a, dash, b = part.strip().partition("-")
+            first = int(a)  # an empty list or a garbled entry is unreadable, not one CPU
+            n += (int(b) - first + 1) if dash else 1
     except ValueError:
         return None
-    return n or None
+    return n if n > 0 else None
 
 
 def cpu_count(host: Host) -> tuple[Optional[int], str]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shlex
 import sys
+from pathlib import Path
 from typing import Optional
 
 from rig.daemon.service import UDEV_DIR, UDEV_RULES, udev_rules
@@ -17,7 +18,8 @@ STABLE_TRIGGER = "/dev/rig-trigger"  # the name 99-rig.rules gives the trigger b
 
 
 def _install_command(needs: RigNeeds) -> str:
-    config = shlex.quote(needs.config_path or "RIG.toml")
+    # absolute: the fix script runs from wherever the user is, not from where the doctor ran
+    config = shlex.quote(str(Path(needs.config_path).absolute()) if needs.config_path else "RIG.toml")
     return f"sudo {shlex.quote(sys.executable)} -m rig service install -c {config}"
 
 

@@ -103,3 +103,11 @@ def test_shared_memory_ok_warn_fail(fake):
     assert memory.checks(fake.host(), needs)[0].status == "ok"
     assert memory.checks(fake.host(), needs_of([camera("g", "gopro://C123?record=card", trigger="free", width=3840,
                                                        height=2160, fps=30.0)]))[0].status == "ok"
+
+
+def test_the_udev_fix_names_the_config_by_its_absolute_path(fake, tmp_path, monkeypatch):
+    """`rig doctor -c rig.toml --fix-script fix.sh`: the fix said `-c rig.toml`, which `bash fix.sh`
+    run from another folder (or `sudo bash` from /root) does not find."""
+    monkeypatch.chdir(tmp_path)
+    c = rules_check(fake, needs_of(HW, trigger=BOARD, path="rig.toml"))
+    assert c.fix.endswith(f"-m rig service install -c {tmp_path / 'rig.toml'}")

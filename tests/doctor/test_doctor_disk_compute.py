@@ -7,6 +7,7 @@ import pytest
 
 from rig.doctor import compute, disk
 from rig.doctor.check import FAIL, OK, WARN
+from rig.doctor.host import Host
 from tests.doctor.fakehost import camera, needs_of, statuses
 
 SMALL = [camera("left", "sim://left", role="left", width=64, height=48, fps=1.0),
@@ -63,6 +64,15 @@ def test_cpus_ok_warn_fail(fake):
     assert c.status == WARN and c.measured == "2"
     c = cpus(fake, "0-7", quota="100000 100000")  # a container allowed one CPU's time
     assert c.status == FAIL and c.measured.startswith("1 (cgroup quota")
+
+
+@pytest.mark.parametrize("online", ["", "garbage", "0-"])
+def test_an_unreadable_cpu_list_is_unreadable_not_one_cpu(fake, online):
+    """An empty or garbled /sys/devices/system/cpu/online (or none under --root: a partial copy of a
+    host's tree) counted as one CPU and failed the check ("on one core ...")."""
+    c = cpus(fake, online)
+    assert c.status == WARN and c.measured == "unreadable"
+    assert compute.cpu_count(Host(fake.root.parent / "empty-root"))[0] is None
 
 
 NO_GPU = {"torch": {"version": "2.13.0+cpu", "cuda": False, "devices": []},
