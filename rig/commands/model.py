@@ -441,7 +441,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     model_path = Path(args.model) if args.model else None
     if model_path is not None and not model_path.is_file():
         raise ConfigError(f"{model_path}: no such model")
+    for seq in args.sequence:
+        if Path(seq).exists() and not Path(seq).is_dir():
+            raise ConfigError(f"--sequence {seq}: is a file, not a sequence folder")
     sequences = expand_sequences(args.sequence)
+    data = TrainingSet(sequences)  # before the model loads: a take that cannot be evaluated costs nothing
+    if len(data) == 0:
+        raise ConfigError(f"--sequence {', '.join(data.roots)}: no frame set to evaluate (none has both sources and the "
+                          "supervision cameras)")
 
     from inference.device import describe, resolve_device
     from inference.evaluate.load import model_to_evaluate
@@ -453,7 +460,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
         _licence_note(f"{model_path} runs MASt3R weights" if args.model else f"loaded {args.weights}")
     if model_path is None:
         model_path = Path(args.weights)
-    data = TrainingSet(sequences)
     from rig.progress import ProgressBar
 
     with ProgressBar("evaluating") as bar:

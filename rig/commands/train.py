@@ -185,6 +185,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     # Everything a user can get wrong is checked before torch loads and before any work.
     cfg, out = _check_options(args)
+    for seq in args.sequences:
+        if seq.exists() and not seq.is_dir():
+            raise ConfigError(f"{seq}: is a file, not a sequence folder (give the folder rig record or rig sim dataset wrote)")
     data = TrainingSet(expand_sequences(args.sequences))
     if cfg.supervised:
         from inference.train.depth_supervision import truth_missing

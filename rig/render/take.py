@@ -209,6 +209,7 @@ def render_take(take: Take, plan: Plan, renderer: Renderer, out: Path, *, fps: O
         from rig.live.video import write_video
 
         done.fps = fps or float(seq.meta.rate_hz or 30.0)
+        out.parent.mkdir(parents=True, exist_ok=True)  # a missing folder was checked writable (output_file)
         video = write_video(out, views(), done.fps)
         done.frames, done.codec, done.codec_label = video.frames, video.codec, video.codec_label
     else:
@@ -218,7 +219,7 @@ def render_take(take: Take, plan: Plan, renderer: Renderer, out: Path, *, fps: O
         from inference.errors import OutputError
 
         rgb = next(views())
-        with atomic_path(out) as tmp:
+        with atomic_path(out, make_parents=True) as tmp:  # a missing folder was checked writable (output_file)
             if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
                 raise OutputError(f"{out}: could not write the image")
         done.frames = 1

@@ -27,3 +27,47 @@ def test_model_with_its_data_file_cut_short_is_one_line(tmp_path):
         f.truncate(data.stat().st_size // 2)
     proc = run_rig("model", "check", model)
     assert_one_line_error(proc, str(model), data.name, "shorter than the model needs")
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory) -> Path:
+    from simulator.takes import write_take
+
+    return Path(write_take(tmp_path_factory.mktemp("trial") / "take", seed=5, seconds=0.2, fps=10, size=(320, 180))["out"])
+
+
+@pytest.fixture
+def empty_take(take, tmp_path) -> Path:
+    """A take's sequence.json with no frame set recorded."""
+    empty = tmp_path / "empty-take"
+    empty.mkdir()
+    shutil.copy(take / "sequence.json", empty / "sequence.json")
+    (empty / "index.jsonl").write_text("")
+    return empty
+
+
+def test_render_into_a_folder_not_made_yet(take, tmp_path):
+    # the output was checked writable up front, then the image write failed after the render (exit 1)
+    out = tmp_path / "new" / "deeper" / "view.png"
+    proc = run_rig("model", "render", "--model", LIVE, "--sequence", take, "--set", "0", "--view", "0.5", "-o", out, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert out.is_file()
+
+
+def test_eval_of_an_empty_take_is_refused(empty_take):
+    # printed an empty table and exited 0
+    proc = run_rig("model", "eval", "--model", REPO / "models" / "splat-sap-preview.pt", "--sequence", empty_take)
+    assert_one_line_error(proc, str(empty_take), "no frame set to evaluate")
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_a_file_given_as_the_sequence(command, tmp_path):
+    # "rig.toml/sequence.json: Not a directory (the work stopped here)", exit 1
+    f = tmp_path / "rig.toml"
+    f.write_text("[rig]\n")
+    if command == "train":
+        proc = run_rig("train", f, "-o", tmp_path / "run", "--size", "test")
+    else:
+        proc = run_rig("model", "eval", "--model", REPO / "models" / "splat-sap-preview.pt", "--sequence", f)
+    assert_one_line_error(proc, str(f), "is a file, not a sequence folder")
+    assert not (tmp_path / "run").exists()
