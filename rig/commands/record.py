@@ -26,7 +26,8 @@ def register(sub) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--seconds", type=float, help="record for this long")
     g.add_argument("--sets", type=int, help="record this many frame sets")
-    p.add_argument("--pixels", action="store_true", help="validate: also decode every image (slower)")
+    p.add_argument("--pixels", action="store_true", help="validate, repair: also decode every image (slower; repair then "
+                                                         "marks an image that does not decode missing)")
     p.add_argument("--camera", action="append", metavar="NAME", help="align, fetch: this camera (repeatable; default: every camera "
                                                                       "not hardware-triggered / every card camera)")
     p.add_argument("--no-flash", action="store_true", help="record: do not flash the board's LED (by default a take with free-running "
@@ -94,15 +95,16 @@ def _validate(args) -> int:
         if len(v.errors) > 20:
             print(f"  ... and {len(v.errors) - 20} more errors")
     if not v.readable:
-        print(f"rig: error: {unreadable(v)}", file=sys.stderr)
+        print(f"rig: error: {unreadable(v, args.pixels)}", file=sys.stderr)
         return 1
     return 0
 
 
-def unreadable(v) -> str:
-    """What a take that does not validate (rig.storage.validate) is told."""
+def unreadable(v, pixels: bool = False) -> str:
+    """What a take that does not validate (rig.storage.validate) is told; `pixels`: validated with
+    --pixels, so the repair must decode too to find what validate found."""
     return (f"{v.root}: {len(v.errors)} problem{'s' if len(v.errors) > 1 else ''} (first: {v.errors[0]}); "
-            "`rig record repair` keeps every good set")
+            f"`rig record repair{' --pixels' if pixels else ''}` keeps every good set")
 
 
 def _repair(args) -> int:
@@ -111,8 +113,8 @@ def _repair(args) -> int:
     from rig.storage.validate import validate
 
     root = _need_dir(args)
-    r = repair(root)
-    after = validate(root)  # what is left that a repair of the index cannot mend (a corrupt calibration copy)
+    r = repair(root, check_pixels=args.pixels)
+    after = validate(root, check_pixels=args.pixels)  # what is left that a repair of the index cannot mend (a corrupt calibration copy)
     r["readable"] = after.readable
     r["errors"] = after.errors
     if args.json:

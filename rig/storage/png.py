@@ -9,7 +9,10 @@ last bytes, without decoding it.
 """
 from __future__ import annotations
 
+import contextlib
+import os
 import struct
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -50,6 +53,27 @@ class PngEncoder:
         frame = av.VideoFrame.from_ndarray(data, format=self.pix_fmt)
         packets = list(cc.encode(frame)) + list(cc.encode(None))
         return b"".join(bytes(p) for p in packets)
+
+
+@contextlib.contextmanager
+def quiet_decoder():
+    """Keep libpng's own messages ("libpng error: IDAT: CRC error", written straight to file
+    descriptor 2) off stderr while a command checks images: the damage is reported as an error of
+    the command's own. For one thread's checks (validate, repair): it silences the whole process."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to keep quiet
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def read_png(path: Path) -> np.ndarray:

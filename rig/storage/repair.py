@@ -5,7 +5,8 @@ Only the index is rewritten; no image is touched. Line by line:
   that could be read back anyway;
 - a frame whose image is missing, torn (wrong size; a PNG without its end chunk), has a damaged header, or whose record is
   malformed, is marked missing (`null`) in its set, as the recorder marks a dropped frame; the set
-  and its other cameras' frames are kept;
+  and its other cameras' frames are kept; with `check_pixels` (`--pixels`) so is one whose image
+  does not decode (a PNG damaged inside: its chunks' checksums fail);
 - a camera the sequence does not record (not in sequence.json) is removed from its row, and a
   recorded camera absent from a row is added to it as missing.
 Every other line is kept byte for byte. Before the index is replaced (atomically), the original is
@@ -21,12 +22,12 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Optional
 
 from common.files import atomic_write_bytes
-from rig.storage.layout import INDEX, CameraEntry, SequenceError, SequenceMeta
+from rig.storage.layout import INDEX, CameraEntry, ImageError, SequenceError, SequenceMeta
 
 BACKUP_PREFIX = "index.before-repair-"
 
 
-def repair(root: str | Path) -> dict[str, Any]:
+def repair(root: str | Path, check_pixels: bool = False) -> dict[str, Any]:
     """Repair `root`'s index as the module says. Returns what `rig record repair --json` prints:
     kept_sets, dropped_lines, frames_marked_missing, backup (None when nothing changed), and
     `dropped`, one entry per change: what (line | frame | camera), line, set, camera, file, reason."""
@@ -46,7 +47,7 @@ def repair(root: str | Path) -> dict[str, Any]:
         if why is not None:
             changes.append({"what": "line", "line": line_no, "bytes": len(line) + whole, "reason": why})
             continue
-        row_changes = _repair_row(root, entries, row, line_no)
+        row_changes = _repair_row(root, entries, row, line_no, check_pixels)
         changes.extend(row_changes)
         out.append(json.dumps(row, separators=(",", ":")).encode() + b"\n" if row_changes else line + b"\n")
         kept += 1
@@ -105,7 +106,8 @@ def _parse(line: bytes, whole: bool) -> tuple[Optional[dict], Optional[str]]:
     return row, None
 
 
-def _repair_row(root: Path, entries: dict[str, CameraEntry], row: dict, line_no: int) -> list[dict[str, Any]]:
+def _repair_row(root: Path, entries: dict[str, CameraEntry], row: dict, line_no: int,
+                check_pixels: bool = False) -> list[dict[str, Any]]:
     """Fix one row in place; returns its changes."""
     changes = []
     frames = row["frames"]
@@ -119,6 +121,8 @@ def _repair_row(root: Path, entries: dict[str, CameraEntry], row: dict, line_no:
         if rec is None:
             continue
         why = frame_damage(root, entries[cam], rec)
+        if why is None and check_pixels:
+            why = _does_not_decode(root / rec["file"], entries[cam])
         if why is not None:
             frames[cam] = None
             changes.append({"what": "frame", "line": line_no, "set": row["set"], "camera": cam,
@@ -145,6 +149,20 @@ def frame_damage(root: Path, entry: CameraEntry, rec: Any) -> Optional[str]:
         return entry.damage(path)
     except FileNotFoundError:
         return "image file missing"
+    except OSError as exc:
+        return f"image cannot be read ({exc.strerror})"
+    return None
+
+
+def _does_not_decode(path: Path, entry: CameraEntry) -> Optional[str]:
+    """Why a whole-looking image cannot be decoded, or None when it decodes."""
+    from rig.storage.png import quiet_decoder
+
+    try:
+        with quiet_decoder():
+            entry.read(path)
+    except ImageError:
+        return "image does not decode (damaged inside)"
     except OSError as exc:
         return f"image cannot be read ({exc.strerror})"
     return None

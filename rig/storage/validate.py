@@ -13,6 +13,7 @@ import numpy as np
 from rig.storage.index import scan_index
 from rig.storage.layout import CALIBRATION_COPY, INDEX, CameraEntry, ImageError, SequenceMeta
 from rig.storage.media import media_problems
+from rig.storage.png import quiet_decoder
 from rig.storage.repair import frame_damage
 
 
@@ -97,7 +98,8 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
             problem = frame_problem(root, entries, row, cam, rec)
             if problem is None and rec is not None and check_pixels:
                 try:
-                    entries[cam].read(root / rec["file"])
+                    with quiet_decoder():
+                        entries[cam].read(root / rec["file"])
                 except ImageError as exc:
                     problem = str(exc)
             if problem is not None:

@@ -199,3 +199,29 @@ def test_a_compress_ratio_that_no_png_reaches_is_refused(tmp_path, ratio):
                                          "--compress-ratio", ratio), "--compress-ratio must be")
     assert "1 to 1000" in line or "at least 1" in line
     assert not seq.exists()
+
+
+def test_a_png_damaged_inside_is_found_by_pixels_and_repair_pixels_marks_it(tmp_path, takes):
+    """Bit rot inside a PNG (its header and end chunk whole) is found only by decoding: `validate
+    --pixels` found it but pointed at `rig record repair`, which said 'nothing to repair' and left
+    the take unreadable; and libpng's own complaints ran onto stderr around the one error line."""
+    import shutil
+
+    seq = tmp_path / "png"
+    shutil.copytree(takes[1]["png"][0], seq)
+    r = rows(seq)
+    rotten = seq / r[3]["frames"]["left"]["file"]
+    data = bytearray(rotten.read_bytes())
+    for i in range(len(data) // 2, len(data) // 2 + 16):
+        data[i] ^= 0xFF
+    rotten.write_bytes(bytes(data))
+    assert validate(seq).readable  # header and end chunk are whole: only decoding tells
+    line = assert_one_line_error(run_rig("record", "validate", seq, "--pixels"), "does not decode", code=1)
+    assert "rig record repair --pixels" in line
+    proc = run_rig("record", "repair", seq, "--pixels", "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert "libpng" not in proc.stderr
+    rep = json.loads(proc.stdout)
+    assert rep["frames_marked_missing"] == 1 and rep["dropped"][0]["camera"] == "left" and rep["readable"]
+    again = validate(seq, check_pixels=True)
+    assert again.readable and again.missing == {"left": 1, "right": 0, "sup": 0} and again.sets == 6
