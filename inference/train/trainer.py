@@ -232,6 +232,8 @@ class Trainer:
             (self.out / "samples").mkdir(exist_ok=True)
             if not resume:
                 atomic_write_json(self.out / "train.json", {"config": cfg.to_dict(), **(describe or {})})
+            else:
+                self._record_config()
             self._trim_metrics()
 
     # -- state ------------------------------------------------------------------------------------
@@ -248,6 +250,25 @@ class Trainer:
         load_weights(self.model, data.get("state_dict"), path)
         self.step = int(data["train"]["step"])
         self._optim_state = data["train"].get("optimizer")
+        self._check_stage(path, saved.stage1.steps)
+
+    def _check_stage(self, path: Path, saved_stage1: int) -> None:
+        """A resumed run continues the stage its checkpoint's optimiser belongs to: a new stage-1
+        length (--stage1-steps) may end stage 1 at the checkpoint or later, never move the run
+        into the other stage half way (stage 1's optimiser on stage 2's parameters, or back)."""
+        step, new_stage1 = self.step, self.cfg.stage1.steps
+        if self._optim_state is None or step == 0 or new_stage1 == saved_stage1:
+            return
+        saved_stage = 1 if step <= saved_stage1 else 2
+        resumed_stage = 1 if step < new_stage1 else (2 if step > new_stage1 else None)  # None: stage 2 starts afresh
+        if resumed_stage is None and saved_stage == 1:
+            return
+        if saved_stage == 1 and resumed_stage == 2:
+            raise InferenceError(f"{path}: the run is at step {step}, in stage 1; --stage1-steps {new_stage1} would put it half way "
+                                 f"through stage 2: give --stage1-steps {step} to end stage 1 here, or more to continue it")
+        if saved_stage == 2:
+            raise InferenceError(f"{path}: the run is at step {step}, in stage 2 (stage 1 ended at step {saved_stage1}); "
+                                 f"stage 1's length cannot change now: give --stage1-steps {saved_stage1}")
 
     def _init_from(self, path: Path) -> None:
         """Start this run's schedule from the weights of an earlier run (fine-tuning, a longer schedule)."""
@@ -281,6 +302,20 @@ class Trainer:
                 torch.save(data, tmp)
         except OSError as exc:
             raise OutputError(f"{path}: cannot write the checkpoint ({exc.strerror or exc})") from None
+
+    def _record_config(self) -> None:
+        """On resume: train.json's config becomes this run's (a flag such as --stage1-steps may have
+        changed the schedule), so that the next --resume, which reads it, continues the same one."""
+        path = self.out / "train.json"
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError):
+            record = None
+        if not isinstance(record, dict):
+            record = {}
+        if record.get("config") != self.cfg.to_dict():
+            record["config"] = self.cfg.to_dict()
+            atomic_write_json(path, record)
 
     def _trim_metrics(self) -> None:
         """On resume: drop lines logged after the checkpoint (they will be logged again)."""
