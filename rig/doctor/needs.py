@@ -16,6 +16,7 @@ from rig.cameras.pixels import BYTES_PER_PIXEL
 from rig.config import CameraConfig, RigConfig
 from rig.daemon import ring as ring_file
 from rig.daemon.camera_daemon import default_slots, ring_geometry
+from rig.storage.disk import camera_rate_hz
 
 # Aravis's GigE Vision stream asks the kernel for a receive buffer of max(4 payloads, 4 MiB)
 # (rig/cameras/aravis.py, AravisCamera.start); the kernel caps it at net.core.rmem_max.
@@ -29,7 +30,7 @@ class CameraNeeds:
     name: str
     uri: str
     transport: str            # gige | aravis-id | uvc | gopro | stream | sim | card
-    rate_hz: float            # frames per second it delivers
+    rate_hz: float            # frames per second it delivers (the board's rate when it is triggered)
     wire_bytes: int           # one frame as the camera sends it (the sensor's pixel format)
     disk_bytes: int           # one frame as a take stores it (Bayer as its mosaic)
     ring_bytes: int           # the daemon's shared-memory ring file (0: no daemon for it)
@@ -113,7 +114,7 @@ def rig_needs(cfg: RigConfig) -> RigNeeds:
             cards.append(cam.name)  # it records to its own card: nothing reaches this host during a take
             continue
         transport, address, device = _transport(cam)
-        rate = trigger.rate_hz if (cam.trigger == "hardware" and trigger is not None) else cam.fps
+        rate = camera_rate_hz(cfg, cam)  # the board's for a triggered camera (hardware or software), as rig record counts
         bpp = BYTES_PER_PIXEL.get(cam.pixel_format, 3)
         frame = cam.width * cam.height * bpp
         cameras.append(CameraNeeds(name=cam.name, uri=cam.uri, transport=transport, rate_hz=float(rate),

@@ -149,3 +149,19 @@ def test_write_test_takes_at_most_a_tenth_of_the_free_room_and_says_when_it_cann
     # before: "0.0 MB/s (0.0 MiB in 0.00 s)", a failure saying the disk cannot keep up
     assert rate.status == WARN and rate.measured.startswith("not measured") and "cannot keep up" not in rate.note
     assert list(out.iterdir()) == []
+
+
+def test_the_doctor_counts_the_data_rate_that_rig_record_checks():
+    """A software-triggered camera gets a trigger per board pulse, so it runs at the board's rate, as
+    `rig record`'s disk check counts it; the doctor counted its fps (here half the rate)."""
+    from rig.config import parse_config
+    from rig.doctor.needs import rig_needs
+    from rig.storage.disk import rig_data_rate
+
+    cams = [camera("a", "sim://a", width=640, height=360, pixel_format="RGB8", fps=30.0, trigger="hardware"),
+            camera("b", "sim://b", width=640, height=360, pixel_format="Mono16", fps=30.0, trigger="software"),
+            camera("c", "sim://c", width=320, height=180, pixel_format="BayerRG8", fps=25.0, trigger="free")]
+    cfg = parse_config({"rig": {"name": "venue"}, "cameras": cams, "trigger": {"uri": "sim://trigger", "rate_hz": 60.0}})
+    needs = rig_needs(cfg)
+    assert {c.name: c.rate_hz for c in needs.cameras} == {"a": 60.0, "b": 60.0, "c": 25.0}
+    assert needs.data_rate == rig_data_rate(cfg)
