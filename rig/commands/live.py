@@ -71,15 +71,27 @@ def cmd_live(args: argparse.Namespace) -> int:
 
     if token is None and not is_loopback_name(host):
         token = secrets.token_urlsafe(18)  # a non-loopback bind is never open
+    from rig.errors import RigError
+    from rig.http_access import bind_socket
+
+    # The address first: one taken or not of this host is one line before the cameras and the model open.
+    try:
+        sock = bind_socket(host, port, "live")
+    except RigError as exc:
+        raise ConfigError(str(exc)) from None
     notes = Notes(quiet=False)
-    app = LiveApp.build(cfg, model=args.model, calibration=args.calibration, replay=args.replay,
-                        record_output=args.record_output, record_view=view_message(args.record_view),
-                        threads=args.threads, providers=args.providers, jpeg_quality=args.jpeg_quality, notes=notes,
-                        device=args.device, size=args.size, compile=args.compile)
+    try:
+        app = LiveApp.build(cfg, model=args.model, calibration=args.calibration, replay=args.replay,
+                            record_output=args.record_output, record_view=view_message(args.record_view),
+                            threads=args.threads, providers=args.providers, jpeg_quality=args.jpeg_quality, notes=notes,
+                            device=args.device, size=args.size, compile=args.compile)
+    except BaseException:
+        sock.close()
+        raise
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with app:
-        server = app.serve(host, port, token)
+        server = app.serve(host, port, token, sock=sock)
         where = f"http://{host if ':' not in host else '[' + host + ']'}:{server.port}/"
         print(f"live: serving {where}" + (f"?token={token}" if token else "") + "  (Ctrl-C stops)", file=sys.stderr, flush=True)
         if token and args.token is None:

@@ -47,6 +47,29 @@ def rig_calibration(cfg, calibration: Optional[Path], replay: Optional[ReplaySou
     raise ConfigError(f"{cfg.path or 'config'}: no calibration (set rig.calibration, or give --calibration; `rig calibrate run` makes one)")
 
 
+def check_frame_sizes(cfg, rig: RigCalibration, sources: tuple[str, str], replay: Optional[ReplaySource],
+                      calibration: Optional[Path]) -> None:
+    """The calibration must be of the frames the model will get, at their size: a replayed take's
+    (a take of another rig, or at another size), or the rig's cameras' when --calibration names a
+    file (the config's own rig.calibration is checked when the config loads). Else every frame set
+    would fail in preprocessing while the server runs."""
+    if replay is None and calibration is None:
+        return
+    for name in sources:
+        if replay is not None:
+            entry = replay.sequence.meta.camera(name)
+            size, where = (int(entry.width), int(entry.height)), f"in the take {replay.sequence.root}"
+        else:
+            cam = cfg.camera(name)
+            size, where = (int(cam.width), int(cam.height)), f"in {cfg.path or 'the config'}"
+        model = rig[name]
+        if (model.width, model.height) != size:
+            source = f"--calibration {calibration}" if calibration is not None else (
+                f"rig.calibration {cfg.resolve(cfg.calibration)}" if cfg.calibration else "the take's calibration")
+            raise ConfigError(f"camera '{name}' is {size[0]}x{size[1]} {where} but {model.width}x{model.height} in {source}; "
+                              "give the calibration of the rig that recorded the frames (--calibration)")
+
+
 DEVICES = ("cpu", "cuda")
 
 
@@ -153,6 +176,14 @@ class LiveApp:
         for name in (left, right):
             if name not in rig:
                 raise ConfigError(f"calibration has no camera '{name}' (it has: {', '.join(rig.names)})")
+        check_frame_sizes(cfg, rig, (left, right), replayed, calibration)
+        if record_output is not None and record_view is not None:
+            from rig.live.viewpoint import parse_viewpoint
+
+            try:  # the engine parses it again; a wrong one is one line before anything opens
+                parse_viewpoint(record_view, rig, (left, right))
+            except ValueError as exc:
+                raise ConfigError(f"--record-view: {exc}") from None
         live_model = open_model(model, providers, threads, device, size, compile)
         recorder = None
         if record_output is not None:
@@ -183,10 +214,11 @@ class LiveApp:
             self.server.stop()
         self.engine.stop()
 
-    def serve(self, host: str, port: int, token: Optional[str]):
+    def serve(self, host: str, port: int, token: Optional[str], sock=None):
+        """`sock`: the listening socket, bound beforehand (else bound here on host:port)."""
         from rig.live.server import serve
 
-        self.server = serve(self.engine, host, port, token)
+        self.server = serve(self.engine, host, port, token, sock=sock)
         return self.server
 
     def summary(self) -> dict:

@@ -32,6 +32,7 @@ import functools
 import logging
 import math
 import signal
+import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -383,10 +384,12 @@ class LiveServer:
     calling thread until `stop()`, or SIGINT/SIGTERM when that is the main thread."""
 
     def __init__(self, engine: Engine, host: str = "127.0.0.1", port: int = 8080, token: Optional[str] = None, *,
-                 log_level: str = "warning", **app_options):
+                 log_level: str = "warning", sock: Optional[socket.socket] = None, **app_options):
+        """`sock`: a listening socket bound beforehand (rig.http_access.bind_socket; `rig live` binds
+        before it opens the cameras and the model), else one is bound here on host:port."""
         self.app = create_app(engine, token, **app_options)
         self.host = host
-        self._sock = bind_socket(host, port, "live")
+        self._sock = sock if sock is not None else bind_socket(host, port, "live")
         self.port: int = self._sock.getsockname()[1]
         config = uvicorn.Config(self.app, log_config=None, log_level=log_level, access_log=False, lifespan="on",
                                 ws_per_message_deflate=False, ws_max_size=WS_MAX_SIZE,
