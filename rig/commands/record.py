@@ -145,7 +145,10 @@ def _print_repair(r: dict) -> None:
 
 
 def _rate(c: dict) -> str:
-    return f", clock {c['rate_ppm']:+.0f} ppm" if c["rate_ppm"] is not None else " (one flash: nominal clock rate)"
+    if c["rate_ppm"] is None:
+        return " (one flash: nominal clock rate)"
+    error = c.get("rate_ppm_error")
+    return f", clock {c['rate_ppm']:+.0f}" + (f" ± {error:.0f}" if error is not None else "") + " ppm"
 
 
 def alignment_lines(r: dict) -> list[str]:

@@ -69,6 +69,7 @@ class CameraAlignment:
     camera: str
     flashes: list[dict[str, Any]] = field(default_factory=list)  # per flash: onset, uncertainty, frames used
     rate_ppm: Optional[float] = None  # how fast the camera's clock runs against the board's (two flashes or more)
+    rate_ppm_error: Optional[float] = None  # how far rate_ppm may be off (the flashes' onset uncertainties)
     frames: int = 0  # frames of the camera in the take
     placed: int = 0  # frames that landed in a set of the take
     moved: int = 0  # of those, in another set than the live grouping put them
@@ -210,7 +211,8 @@ def _align_camera(root: Path, name: str, rows: list[dict], flashes: list[dict], 
         return result, None
     stamps = [rec["device_ts_ns"] for rec, _ in frames.values()]
     # frames beyond the flashes take the rate's uncertainty along: the take's worst frame is stated
-    result.rate_ppm, result.error_periods = fit.rate_ppm, fit.error_over(min(stamps), max(stamps))
+    result.rate_ppm, result.rate_ppm_error = fit.rate_ppm, fit.rate_ppm_error
+    result.error_periods = fit.error_over(min(stamps), max(stamps))
     if result.error_periods >= MAX_ERROR_PERIODS:
         loose = [e for e in result.flashes if e.get("uncertainty_periods", 0) >= MAX_ERROR_PERIODS]
         why = (f"the flash at trigger {loose[0]['trigger']:.2f} is pinned to {loose[0]['uncertainty_periods']:.2f} periods "

@@ -49,6 +49,7 @@ class VideoAlignment:
     pulses_per_frame: Optional[float] = None
     pulses_per_second: Optional[float] = None  # of the video's own clock (its pts)
     rate_ppm: Optional[float] = None  # how fast the camera's clock runs against the board's (two flashes or more)
+    rate_ppm_error: Optional[float] = None  # how far rate_ppm may be off (the flashes' onset uncertainties)
     error_periods: Optional[float] = None  # uncertainty in pulse periods
     error_frames: Optional[float] = None  # the same in the video's frame periods
     problem: Optional[str] = None
@@ -143,7 +144,7 @@ def _align_one(path: Path, result: VideoAlignment, flashes: list[dict], rate_hz:
     result.trigger_at_frame0 = round(float(fit.position(result.pts0_s * 1e9)), 5)
     result.pulses_per_second = round(fit.slope * 1e9, 7)
     result.pulses_per_frame = round(fit.slope * 1e9 / fps, 7)
-    result.rate_ppm = fit.rate_ppm
+    result.rate_ppm, result.rate_ppm_error = fit.rate_ppm, fit.rate_ppm_error
     last_s = result.pts0_s + ((result.frames or 1) - 1) / fps  # the video's last frame: the rate's uncertainty grows to it
     result.error_periods = fit.error_over(result.pts0_s * 1e9, last_s * 1e9)
     result.error_frames = round(result.error_periods * fps / rate_hz, 4)

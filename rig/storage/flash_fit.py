@@ -58,6 +58,7 @@ class ClockFit:
     onsets_ns: tuple[float, ...] = ()  # every flash's onset on the camera's clock
     uncertainties_ns: tuple[float, ...] = ()  # and how far off it may be
     residual_periods: float = 0.0  # the flashes' largest distance from the line (three or more)
+    rate_ppm_error: Optional[float] = None  # how far rate_ppm may be off: the onsets' uncertainties through the line
 
     def position(self, t_ns):
         return self.at_onset + self.slope * (np.asarray(t_ns, dtype=np.float64) - self.onset_ns)
@@ -90,17 +91,33 @@ def fit_clock(points: list[tuple[float, float, float]], rate_hz: float) -> Clock
     onsets = np.array([p[0] for p in points])
     places = np.array([p[1] for p in points])
     nominal = rate_hz / 1e9  # pulse periods per ns of the camera's clock, if it kept time perfectly
-    rate_ppm = None
+    rate_ppm = rate_error = None
     if len(points) >= 2 and np.ptp(onsets) > 0:
         slope, icpt = np.polyfit(onsets - onsets[0], places, 1)
         if abs(nominal / slope - 1) > MAX_RATE_ERROR:
             raise SyncError(f"the flashes give a clock rate {1e6 * (nominal / slope - 1):+.0f} ppm from nominal: "
                             "a flash was matched to the wrong one")
         rate_ppm = round(1e6 * (nominal / slope - 1), 1)  # > 0: the camera's clock runs fast
+        rate_error = _rate_error_ppm(onsets, np.array([p[2] for p in points]))
     else:
         slope, icpt = nominal, places[0]
     fit = icpt + slope * (onsets - onsets[0])
     residual = float(np.max(np.abs(fit - places))) if len(points) > 2 else 0.0
     error = round(max(p[2] for p in points) / period_ns + residual, 4)
     return ClockFit(float(onsets[0]), float(icpt), float(slope), rate_ppm, error,
-                    tuple(float(o) for o in onsets), tuple(float(p[2]) for p in points), residual)
+                    tuple(float(o) for o in onsets), tuple(float(p[2]) for p in points), residual, rate_error)
+
+
+def _rate_error_ppm(onsets_ns: np.ndarray, uncertainties_ns: np.ndarray) -> float:
+    """The most the fitted rate moves, in ppm, when each onset is off by up to its uncertainty.
+
+    The places are exact and the onsets (the fit's abscissae) off by e_i: with a = x - mean(x) and
+    A = sum(a^2), the slope becomes slope * (1 + p) / (1 + 2p + q), p = sum(a_i e_i) / A and
+    q = sum((e_i - mean e)^2) / A, so the rate moves by (p + q) / (1 + p). With |p| <= P =
+    sum(|a_i| u_i) / A and q <= Q = sum(u_i^2) / A that is at most (P + Q) / (1 - P): two flashes D
+    apart give about (u_0 + u_1) / D, so an onset pinned to 1 ms, 10 s from the other, is 100 ppm."""
+    a = onsets_ns - onsets_ns.mean()
+    A = float(a @ a)
+    P = float(np.abs(a) @ uncertainties_ns) / A
+    Q = float(uncertainties_ns @ uncertainties_ns) / A
+    return round(1e6 * min((P + Q) / (1.0 - P), 1.0), 1) if P < 1.0 else 1e6  # JSON has no infinity: 100 % says it

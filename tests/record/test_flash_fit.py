@@ -39,6 +39,24 @@ def test_stated_uncertainty_covers_every_onset_error_beyond_the_flashes(n):
     assert stated.error_over(*ends) >= max(stated.error_periods, *(stated.error_at(t) for t in ends))
 
 
+@pytest.mark.parametrize("n", [2, 3])
+def test_the_stated_rate_error_covers_every_onset_error(n):
+    # A clock that keeps perfect time, two or three flashes 3.3 s apart, each pinned to 0.3-2.2 ms:
+    # its fitted rate may be tens of ppm off, and says by how much (before: a bare "+42 ppm")
+    places = np.linspace(60.0, 160.0, n)
+    onsets = 5e8 + (places - places[0]) * PERIOD_NS
+    unc = np.array([0.3e6, 2.2e6, 0.5e6][:n])
+    stated = fit_clock(_points(onsets, places, unc), RATE_HZ)
+    assert stated.rate_ppm == pytest.approx(0.0, abs=0.05)
+    seen = [abs(fit_clock(_points(onsets + np.array(signs) * unc, places, unc), RATE_HZ).rate_ppm)
+            for signs in itertools.product((-1.0, 1.0), repeat=n)]
+    assert max(seen) <= stated.rate_ppm_error + 0.1, (max(seen), stated.rate_ppm_error)
+    assert max(seen) >= 0.9 * stated.rate_ppm_error  # the bound is reached: not far above what can happen
+    if n == 2:  # (u0 + u1) / D
+        assert stated.rate_ppm_error == pytest.approx(1e6 * (unc[0] + unc[1]) / (onsets[1] - onsets[0]), rel=0.01)
+    assert fit_clock(_points(onsets, places, np.zeros(n)), RATE_HZ).rate_ppm_error == 0.0
+
+
 def test_one_flash_states_its_onset_uncertainty_everywhere():
     fit = fit_clock([(1e9, 30.0, 1.5e6)], RATE_HZ)
     assert fit.rate_ppm is None
