@@ -71,3 +71,21 @@ def test_a_file_given_as_the_sequence(command, tmp_path):
         proc = run_rig("model", "eval", "--model", REPO / "models" / "splat-sap-preview.pt", "--sequence", f)
     assert_one_line_error(proc, str(f), "is a file, not a sequence folder")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("damage", ["torn", "missing"])
+def test_train_on_a_damaged_take_is_refused_before_anything_is_written(take, tmp_path, damage):
+    # stopped with exit 2 at the first batch that read the frame, leaving a run folder with
+    # metrics and no checkpoint (which a second try then refused as a run that kept nothing)
+    bad = tmp_path / "bad-take"
+    shutil.copytree(take, bad)
+    frame = sorted((bad / "frames" / "left").iterdir())[1]
+    if damage == "torn":
+        with open(frame, "r+b") as f:
+            f.truncate(100)
+    else:
+        frame.unlink()
+    out = tmp_path / "run"
+    proc = run_rig("train", bad, "-o", out, "--size", "test", "--stage1-steps", "2", "--stage2-steps", "0", "--batch", "1")
+    assert_one_line_error(proc, str(bad), frame.name, "damaged", "rig record repair")
+    assert not out.exists()
