@@ -437,7 +437,7 @@ def _format_report(calib: RigCalibration) -> str:
             lines.append(f"intrinsics given as priors, {name}: {moves}")
     kept = {name: c["lens_prior"] for name, c in rep["cameras"].items() if c.get("lens_prior")}
     if kept:
-        lines.append(f"lens within its own fit's prior ({LENS_PRIOR_SIGMAS:g} sigma): " + ", ".join(_kept(n, lp) for n, lp in kept.items()))
+        lines.append(f"lens within its own fit ({LENS_PRIOR_SIGMAS:g} sigma of what its views measured): " + ", ".join(_kept(n, lp) for n, lp in kept.items()))
     for ch in rep.get("pairing", []):
         if ch.get("given"):
             k = ch["applied"]

@@ -9,7 +9,8 @@
 4. every camera in the left camera's frame, started from the relative poses the board views imply and
    refined jointly with the intrinsics and every board pose by bundle adjustment over all views
    (a board seen by two or more cameras ties them together), each lens held to its own fit of step 1
-   by a prior weighted by what that fit measured (`lens_information`; off with `lens_priors=False`);
+   by a prior weighted by what that fit measured (`lens_information`; off with `lens_priors=False`,
+   when the report still says which lens moved beyond what its own views allow);
    observations that do not fit are rejected with the reason and the adjustment is run again.
 """
 from __future__ import annotations
@@ -532,7 +533,7 @@ def calibrate_rig(
 
     say("initial rig geometry")
     poses = _initial_camera_poses(order, intr, stereo, right)
-    joint = _joint_start(detections, intr, order, poses)
+    joint = _joint_start(detections, intr, order, poses, opts.lens_priors)
     terms = _joint_terms(intr, order, opts)
     sol, active, corners_rejected = _adjust_rejecting_outliers(joint, terms, intr, order, object_points, opts, rejected, say)
 
@@ -564,12 +565,13 @@ def _cameras_to_solve(detections: DetectionSet, opts: Options) -> tuple[list[str
 
 def _measure_lenses(detections: DetectionSet, intr: dict[str, CameraIntrinsics], order: list[str], object_points: np.ndarray,
                     opts: Options) -> None:
-    """Each fitted lens's focal spread over subsets of its kept views and, with `opts.lens_priors`,
-    what its own views measured of it (the prior the joint adjustment holds it to), set on `intr`."""
+    """Each fitted lens's focal spread over subsets of its kept views and what its own views measured
+    of it (with `opts.lens_priors` the prior the joint adjustment holds it to; either way what the
+    report measures the joint solve's lens against), set on `intr`."""
     for c in order:
         kept = {v: detections.corners[c][v] for v in intr[c].view_rms}
         intr[c].focal_spread = resampled_spread(c, detections.image_size[c], kept, object_points, opts, intr[c].K, intr[c].dist)
-        if opts.lens_priors and not intr[c].given:
+        if not intr[c].given:
             measured = lens_information(intr[c], kept, object_points, opts)
             if measured is not None:
                 intr[c].lens_mean, intr[c].lens_information = measured
@@ -592,7 +594,7 @@ class _JointStart:
 
 
 def _joint_start(detections: DetectionSet, intr: dict[str, CameraIntrinsics], order: list[str],
-                 poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> _JointStart:
+                 poses: dict[str, tuple[np.ndarray, np.ndarray]], lens_priors: bool = True) -> _JointStart:
     views = sorted({v for c in order for v in intr[c].poses}, key=natural_key)
     vindex = {v: i for i, v in enumerate(views)}
     obs_cam, obs_view, obs_ids, obs_uv = [], [], [], []
@@ -617,7 +619,7 @@ def _joint_start(detections: DetectionSet, intr: dict[str, CameraIntrinsics], or
     intr0 = np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *lens.coefficients("pinhole", d)]
                       for K, d in ((intr[c].K, intr[c].dist) for c in order)])
     for ci, c in enumerate(order):  # a lens prior is centred on its camera's own adjustment, which starts it too
-        if intr[c].lens_mean is not None:
+        if lens_priors and intr[c].lens_mean is not None:
             intr0[ci] = intr[c].lens_mean
     fisheye = np.array([intr[c].model == "fisheye" for c in order])
     cams0 = np.array([np.concatenate([rotation_vector(poses[c][0]), poses[c][1]]) for c in order])
@@ -653,7 +655,7 @@ def _joint_terms(intr: dict[str, CameraIntrinsics], order: list[str], opts: Opti
     # each lens's own fit as its prior (information per unit of chi-square, scaled to the corners' noise in the adjustment)
     lens_info = np.zeros((len(order), bundle.N_INTR, bundle.N_INTR))
     for ci, c in enumerate(order):
-        if intr[c].lens_information is not None:
+        if opts.lens_priors and intr[c].lens_information is not None:
             lens_info[ci] = intr[c].lens_information
     priors: dict[str, dict[str, float]] = {}
     for ci, c in enumerate(order):
