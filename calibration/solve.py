@@ -493,7 +493,8 @@ def _pair_instants(detections: DetectionSet, intr: dict[str, CameraIntrinsics], 
     if found and not opts.auto_offset:
         raise CalibrationError(
             "; ".join(ch.line() for ch in found) + ": a rig solved from views paired with the wrong instants is wrong; "
-            + "apply it with " + " ".join(f"--offset {ch.camera}={ch.best:+d}" for ch in found) + " or --auto-offset")
+            + "apply it with " + " ".join(f"--offset {ch.camera}={ch.best:+d}" for ch in found) + " or --auto-offset"
+            + _reference_hint(left, checks, found))
     if found:
         inst = pairing.instant_order(corners)
         for ch in found:
@@ -502,6 +503,18 @@ def _pair_instants(detections: DetectionSet, intr: dict[str, CameraIntrinsics], 
             ch.applied = ch.best
             say(ch.line() + f": applied ({ch.best:+d})")
     return dataclasses.replace(detections, corners=corners), intr, checks
+
+
+def _reference_hint(left: str, checks: list, found: list) -> str:
+    """When every other camera is out of step by the same offset, the left camera is the likelier
+    one: a shorter fix that says so (or "" when that is not the case)."""
+    searched = [ch for ch in checks if not ch.given]
+    offsets = {ch.best for ch in found}
+    if len(found) < 2 or len(found) != len(searched) or len(offsets) != 1:
+        return ""
+    k = offsets.pop()
+    return (f" (every other camera fits best at {k:+d}: more likely {left}'s own images are out of step; "
+            f"then --offset {left}={-k:+d} alone)")
 
 
 def calibrate_rig(

@@ -57,6 +57,20 @@ def test_a_camera_out_of_step_is_named_with_its_residuals_and_the_solve_stops(se
     assert best < 0.3 and 0.6 < at_zero < 2.0, msg  # noise 0.15 px: the right pairing fits to it
 
 
+def test_the_left_camera_out_of_step_is_named_as_the_likelier_fault_and_its_offset_fixes_it():
+    # Every other camera fitting best at the same offset: before, the run only said to shift all of them
+    truth = ring_rig(3)
+    det = moving_board_session(truth, BOARD, INSTANTS, shifts={"cam_0": 1}, noise_px=0.15, speed=SPEED)
+    with pytest.raises(CalibrationError) as err:
+        calibrate_rig(det, BOARD, Options(left="cam_0"))
+    msg = str(err.value)
+    assert "\n" not in msg and "--offset cam_1=-1 --offset cam_2=-1" in msg, msg
+    assert msg.endswith("(every other camera fits best at -1: more likely cam_0's own images are out of step; "
+                        "then --offset cam_0=+1 alone)"), msg
+    result = calibrate_rig(det, BOARD, Options(left="cam_0", offsets={"cam_0": 1}))
+    assert_matches_truth(result.rig, truth)
+
+
 def test_with_the_offset_applied_lenses_and_rotations_match_the_truth(session):
     truth, det = session
     result = calibrate_rig(det, BOARD, Options(left="cam_0", auto_offset=True))
