@@ -274,6 +274,30 @@ def _check_export_output(args: argparse.Namespace) -> None:
     for path in (out, out.with_name(out.stem + ".fp16.onnx")) if args.fp16 else (out,):
         if args.checkpoint and path.exists() and Path(args.checkpoint).exists() and path.samefile(args.checkpoint):
             raise ConfigError(f"{path}: is the checkpoint being exported; choose another output (nothing was overwritten)")
+    _check_replaced_are_exports(out, args.fp16)
+
+
+def _check_replaced_are_exports(out: Path, fp16: bool) -> None:
+    """Each file the export would write over (the model, its parts, the fp16 copies) must be an
+    earlier export (Splat-SAP metadata) or empty: a file of the same name that is anything else (a
+    foreign ONNX model, data the user keeps) is not regenerable and is refused."""
+    from inference.errors import InferenceError
+    from inference.runtime.metadata import read_file_metadata
+    from inference.runtime.split import PARTS, UNSCALED_PART, part_path
+    from rig.errors import ConfigError
+
+    models = (out, out.with_name(out.stem + ".fp16.onnx")) if fp16 else (out,)
+    for model in models:
+        for path in (model, *(part_path(model, p) for p in PARTS + (UNSCALED_PART,))):
+            if not path.is_file() or path.stat().st_size == 0:
+                continue
+            try:
+                exported = read_file_metadata(path).get("splat_sap.format") is not None
+            except InferenceError:
+                exported = False
+            if not exported:
+                raise ConfigError(f"{path}: exists and is not a model rig model export wrote; choose another output name "
+                                  "or move it away (nothing was overwritten)")
 
 
 def _snapshot_inputs(folder: str, left: str, right: str, target: str | None):

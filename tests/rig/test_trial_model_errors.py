@@ -89,3 +89,21 @@ def test_train_on_a_damaged_take_is_refused_before_anything_is_written(take, tmp
     proc = run_rig("train", bad, "-o", out, "--size", "test", "--stage1-steps", "2", "--stage2-steps", "0", "--batch", "1")
     assert_one_line_error(proc, str(bad), frame.name, "damaged", "rig record repair")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", ["model.onnx", "model.view.onnx"])
+def test_export_does_not_replace_an_onnx_named_file_that_is_no_export(tmp_path, name):
+    # `-o model.onnx` replaced any file of that name (or of its parts' names), exports or not
+    kept = tmp_path / name
+    kept.write_bytes(b"a file the user keeps")
+    proc = run_rig("model", "export", "--backbone", "stereo", "--size", "test", "-o", tmp_path / "model.onnx")
+    assert_one_line_error(proc, str(kept), "not a model rig model export wrote", "nothing was overwritten")
+    assert kept.read_bytes() == b"a file the user keeps"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+def test_export_replaces_an_earlier_export(tmp_path):
+    out = _copy_model(tmp_path)  # an earlier export and its parts
+    proc = run_rig("model", "export", "--backbone", "stereo", "--size", "test", "-o", out, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "wrote" in proc.stdout
