@@ -8,6 +8,7 @@ plane with lambda_fine * L(C, I) + lambda_render * L(render, I), L = beta_l1 L1 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Any
 
@@ -37,8 +38,14 @@ class StageSchedule:
             raise InferenceError(f"{where}.batch must be an integer >= 1, got {self.batch!r}")
         if not isinstance(self.views, int) or self.views < 0:
             raise InferenceError(f"{where}.views must be an integer >= 0, got {self.views!r}")
-        if not self.lr > 0:
-            raise InferenceError(f"{where}.lr must be positive, got {self.lr!r}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise InferenceError(f"{where}.lr must be a finite number > 0, got {self.lr!r}")
+        if not (self.grad_clip > 0 and math.isfinite(self.grad_clip)):
+            raise InferenceError(f"{where}.grad_clip must be a finite number > 0, got {self.grad_clip!r}")
+        if not (self.final_lr >= 0 and math.isfinite(self.final_lr)):
+            raise InferenceError(f"{where}.final_lr must be a finite number >= 0, got {self.final_lr!r}")
+        if not isinstance(self.warmup, int) or self.warmup < 0:
+            raise InferenceError(f"{where}.warmup must be an integer >= 0, got {self.warmup!r}")
 
 
 @dataclass
@@ -141,7 +148,7 @@ class TrainConfig:
         except ValueError as exc:
             raise InferenceError(str(exc)) from None
         def factor_ok(prefix, value) -> bool:
-            return isinstance(prefix, str) and bool(prefix) and isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+            return isinstance(prefix, str) and bool(prefix) and isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0 and math.isfinite(value)
 
         if not isinstance(self.lr_factors, dict) or not all(factor_ok(k, v) for k, v in self.lr_factors.items()):
             raise InferenceError(f"lr_factors must map parameter name prefixes to numbers > 0, got {self.lr_factors!r}")
@@ -237,6 +244,8 @@ def _build(cls, d: dict, where: str):
             raise InferenceError(f"{where}.{name}: expected an integer, got {value!r}")
         elif not isinstance(value, (int, float)) or isinstance(value, bool):
             raise InferenceError(f"{where}.{name}: expected a number, got {value!r}")
+        elif not math.isfinite(value):  # JSON's 1e400 reads as inf; NaN and Infinity as such
+            raise InferenceError(f"{where}.{name}: expected a finite number, got {value!r}")
         else:
             kwargs[name] = type(current)(value)
     return cls(**kwargs)

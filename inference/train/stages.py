@@ -18,12 +18,14 @@ at the sizes the stage compares at. Supervision cameras are the targets; the mod
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from inference.errors import InferenceError
 from inference.model.backbone import confidence_to_opacity
 from inference.model.geometry import in_image, project, relative_pose, resize_intrinsics, transform_points
 from inference.model.pipeline import SplatSAP, stage1_inputs
@@ -195,6 +197,7 @@ class Stage1Loss(nn.Module):
                        **({"mvs": float(l_mvs)} if l_mvs is not None else {}), **truth_parts,
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
                        "coverage": float(render.alpha.mean())}
+        check_finite(1, metrics["loss"])
         return loss, metrics, {"render": render.image.detach(), "truth": render_truth}
 
 
@@ -250,7 +253,23 @@ class Stage2Loss(nn.Module):
             metrics = {"loss": float(loss), "fine": float(l_fine), "render": float(l_render),
                        **({"mvs": float(l_mvs)} if l_mvs is not None else {}), **truth_parts,
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10)))}
+        check_finite(2, metrics["loss"])
         return loss, metrics, {"render": out["image"].detach(), "truth": T.images}
+
+
+class TrainingDiverged(InferenceError):
+    """The loss or the weights are no longer finite numbers: a failure during the work (exit 1)."""
+
+    exit_code = 1
+
+
+def check_finite(stage: int, loss: float) -> None:
+    """Before the backward pass: a loss that is not a finite number stops the run (its gradients
+    would be NaN everywhere, and torch's backward of some sampling ops crashed the process on
+    them, a segmentation fault that lost the step's figures)."""
+    if not math.isfinite(loss):
+        raise TrainingDiverged(f"training diverged: the stage-{stage} loss is {loss} (the weights are no longer finite; a learning "
+                               "rate too high?); the last checkpoint is kept: lower the rate in --config and resume or start again")
 
 
 class _Firsts:

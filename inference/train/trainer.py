@@ -44,7 +44,7 @@ from inference.train.data import CachedViews, FrameSource, Preprocessor, stack_v
 from inference.train.plots import save_loss_curve, save_samples
 from inference.train.depth_supervision import TruthDepth, truth_missing
 from inference.train.multiview_depth import source_depths
-from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss
+from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss, TrainingDiverged
 
 CHECKPOINT = "checkpoint.pt"
 FINAL = "model.pt"
@@ -292,8 +292,13 @@ class Trainer:
         if self.rank != 0:
             return
         meta = {"steps": self.step, "device": str(self.device), "stage1_steps": self.cfg.stage1.steps, "stage2_steps": self.cfg.stage2.steps}
+        state = {k: v.cpu() for k, v in self.model.state_dict().items()}
+        broken = next((k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())), None)
+        if broken is not None:  # never written over the last good checkpoint
+            raise TrainingDiverged(f"training diverged at step {self.step}: the weights ({broken}) are no longer finite numbers "
+                                   f"(a learning rate too high?); {path.name} was not written, the last one saved is kept")
         data = {"format": FORMAT, "version": VERSION, "config": self.cfg.model.to_dict(),
-                "state_dict": {k: v.cpu() for k, v in self.model.state_dict().items()}, "meta": meta}
+                "state_dict": state, "meta": meta}
         if not final:
             data["train"] = {"config": self.cfg.to_dict(), "step": self.step,
                              "optimizer": optimizer.state_dict() if optimizer is not None else None}

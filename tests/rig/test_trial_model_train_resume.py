@@ -56,3 +56,28 @@ def test_resume_with_another_stage1_length(tmp_path):
     # in stage 2, stage 1's length is fixed
     r = rig("train", take, "-o", out, "--resume", "--stage1-steps", "6", "--stop-after", "1")
     assert_one_line_error(r, "in stage 2", "--stage1-steps 3")
+
+
+def test_a_diverging_run_stops_in_one_line_and_keeps_its_last_good_checkpoint(tmp_path):
+    # a learning rate of 1e30 made the weights NaN after one step, and the next step's backward
+    # pass crashed the process (segmentation fault, exit 139); a checkpoint of those weights would
+    # have been written over the last good one. An infinite rate (JSON 1e400) was accepted.
+    take = Path(write_take(tmp_path / "take", seed=8, seconds=0.3, fps=10, size=(320, 180))["out"])
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps({**LIGHT, "checkpoint_every": 1}))
+    out = tmp_path / "run"
+    r = rig("train", take, "-o", out, *ARGS, "--config", good, "--stage1-steps", "6", "--stage2-steps", "0", "--stop-after", "1")
+    assert r.returncode == 0, r.stderr
+
+    wild = tmp_path / "wild.json"
+    wild.write_text(json.dumps({**LIGHT, "checkpoint_every": 1, "stage1": {"lr": 1e30}}))
+    r = rig("train", take, "-o", out, *ARGS, "--config", wild, "--stage1-steps", "6", "--stage2-steps", "0", "--resume")
+    assert_one_line_error(r, "training diverged", code=1)
+    kept = torch.load(out / "checkpoint.pt", weights_only=False)  # whole, and no weight in it NaN or infinite
+    assert kept["train"]["step"] >= 1
+    assert all(bool(torch.isfinite(v).all()) for v in kept["state_dict"].values() if v.is_floating_point())
+
+    (tmp_path / "inf.json").write_text('{"stage1": {"lr": 1e400}}')
+    r = rig("train", take, "-o", tmp_path / "run2", *ARGS, "--config", tmp_path / "inf.json")
+    assert_one_line_error(r, "stage1.lr", "finite")
+    assert not (tmp_path / "run2").exists()
