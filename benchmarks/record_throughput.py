@@ -134,6 +134,8 @@ def main() -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     total = int(args.gb * 1e9) // (8 << 20) * (8 << 20)
+    if args.dir is not None:
+        args.dir.mkdir(parents=True, exist_ok=True)  # a folder not made yet on the disk to measure
     folder = Path(tempfile.mkdtemp(prefix="record-bench-", dir=args.dir))
     say = (lambda *a: None) if args.json else print
     try:
