@@ -155,6 +155,9 @@ def open_session(path: str | os.PathLike, providers: list[str] | None = None, th
             data = sorted(p.name for p in path.resolve().parent.glob(path.name + ".*.data"))
             raise InferenceError(f"{path}: its weights file {data[0] if data else path.name + '.*.data'} is shorter than the model "
                                  "needs (cut short, or from another export); copy the model's files together again") from None
+        if path.suffix == ".pt":
+            raise InferenceError(f"{path}: a checkpoint, not an ONNX model; export it first "
+                                 f"(rig model export --checkpoint {path} -o MODEL.onnx)") from None
         raise InferenceError(f"{path}: ONNX Runtime cannot load it ({str(exc).splitlines()[0]})") from None
 
 

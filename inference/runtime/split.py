@@ -63,6 +63,9 @@ class SplitPipeline:
         included) on one frame set in `scale_every` and reuse its factor on the sets between, with
         stage 1 without the search (M.stage1_unscaled.onnx; see `stage1`). 1: every set searched."""
         self.path = Path(path)
+        if self.path.suffix == ".pt":
+            raise InferenceError(f"{self.path}: a checkpoint, not an ONNX model; export it first "
+                                 f"(rig model export --checkpoint {self.path} -o MODEL.onnx)")
         paths = {part: part_path(self.path, part) for part in PARTS}
         for part, p in paths.items():
             if not p.is_file():

@@ -333,6 +333,12 @@ def _snapshot_inputs(folder: str, left: str, right: str, target: str | None):
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    import math
+
+    from rig.errors import ConfigError
+
+    if not (math.isfinite(args.tolerance) and args.tolerance >= 0):  # before torch loads
+        raise ConfigError(f"--tolerance must be a number >= 0 (an image difference, in [0, 1]), got {args.tolerance:g}")
     import numpy as np
     import torch
 

@@ -107,3 +107,25 @@ def test_export_replaces_an_earlier_export(tmp_path):
     proc = run_rig("model", "export", "--backbone", "stereo", "--size", "test", "-o", out, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "wrote" in proc.stdout
+
+
+def test_check_refuses_a_tolerance_that_is_no_bound():
+    # --tolerance -1 ran the whole comparison and reported MISMATCH, exit 1
+    for value in ("-1", "nan"):
+        assert_one_line_error(run_rig("model", "check", LIVE, "--tolerance", value), "--tolerance")
+
+
+@pytest.mark.parametrize("command", ["render", "live"])
+def test_a_checkpoint_given_as_the_onnx_model(command, take, tmp_path):
+    # render: "ONNX Runtime cannot load it (... INVALID_PROTOBUF ...)"; live: "model.stage1.onnx: no such file"
+    ckpt = REPO / "models" / "splat-sap-preview.pt"
+    if command == "render":
+        proc = run_rig("model", "render", "--model", ckpt, "--sequence", take, "--set", "0", "--view", "0.5", "-o", tmp_path / "v.png")
+    else:
+        from rig.config import dump_config, parse_config
+        from rig.sim.rig_config import sim_rig_config
+
+        cfg = tmp_path / "rig.toml"
+        cfg.write_text(dump_config(parse_config(sim_rig_config(2, 320, 180, fps=15.0))))
+        proc = run_rig("live", "-c", cfg, "--model", ckpt, "--port", "0", "--seconds", "1")
+    assert_one_line_error(proc, str(ckpt), "a checkpoint, not an ONNX model", "rig model export --checkpoint")
