@@ -104,6 +104,8 @@ class ReplaySource:
         from rig.storage.dataset import Sequence
         from rig.storage.layout import SequenceError
 
+        if Path(sequence).exists() and not Path(sequence).is_dir():
+            raise ConfigError(f"--replay: {sequence}: is a file, not a sequence folder")
         try:
             self.sequence = Sequence(sequence)
         except SequenceError as exc:

@@ -78,3 +78,8 @@ def test_a_calibration_of_another_size_than_the_replayed_take(rig_toml, take, bi
 def test_a_calibration_of_another_size_than_the_rig(rig_toml, big_calibration):
     proc = _live(rig_toml, "--port", 0, "--calibration", big_calibration)
     assert_one_line_error(proc, f"camera 'left' is 320x180 in {rig_toml}", "640x360 in --calibration")
+
+
+def test_a_file_given_to_replay(rig_toml):
+    # "rig.toml/sequence.json: Not a directory (the work stopped here)", exit 1
+    assert_one_line_error(_live(rig_toml, "--port", 0, "--replay", rig_toml), "--replay", str(rig_toml), "is a file")
