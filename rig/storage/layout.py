@@ -152,6 +152,8 @@ class SequenceMeta:
             d = json.loads(path.read_text())
         except FileNotFoundError:
             raise SequenceError(f"{root}: not a sequence ({META} missing)") from None
+        except NotADirectoryError:
+            raise SequenceError(f"{root}: is a file, not a sequence folder") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise SequenceError(f"{path}: corrupt ({exc})") from None
         if not isinstance(d, dict):

@@ -114,6 +114,17 @@ def test_validate_rejects_a_folder_that_is_not_a_sequence(tmp_path):
     assert_one_line_error(run_rig("record", "validate", tmp_path / "nope"), "no such sequence folder")
 
 
+def test_a_file_read_as_a_sequence_is_a_sequence_error_for_every_caller(tmp_path):
+    # the commands each said so; a caller of the library got NotADirectoryError (exit 1 through rig)
+    from rig.storage.layout import SequenceError, SequenceMeta
+
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a sequence\n")
+    with pytest.raises(SequenceError, match="is a file, not a sequence folder") as err:
+        SequenceMeta.load(notes)
+    assert err.value.exit_code == 2
+
+
 def test_writer_refuses_to_overwrite(tmp_path):
     seq_dir = tmp_path / "seq"
     write_sequence(seq_dir, n=2)
