@@ -389,8 +389,21 @@ def format_report(calib: RigCalibration) -> str:
 
 
 def _format_report(calib: RigCalibration) -> str:
-    meta = calib.meta
-    rep = meta.get("report")
+    rep = calib.meta.get("report")
+    lines = _header_lines(calib.meta) + [""] + _camera_table(calib, rep)
+    if rep is None:
+        if len(calib.cameras) >= 2:
+            a, b = calib.cameras[0], calib.cameras[-1]
+            lines.append("")
+            lines.append(f"baseline {a.name}-{b.name}: {np.linalg.norm(b.center - a.center) * 1000:.2f} mm")
+        lines.append("(this file carries no measurements: reprojection errors and coverage come from `rig calibrate run`)")
+        return "\n".join(lines)
+    lines += [""] + _lens_lines(rep) + _stereo_lines(rep) + [""] + _coverage_lines(rep) + _fault_lines(rep)
+    return "\n".join(lines)
+
+
+def _header_lines(meta: dict[str, Any]) -> list[str]:
+    """When, and with which board."""
     lines = []
     if meta.get("date"):
         lines.append(f"calibrated {meta['date']}")
@@ -398,8 +411,12 @@ def _format_report(calib: RigCalibration) -> str:
         b = meta["board"]
         desc = ", ".join(f"{k}={v}" for k, v in b.items() if k != "type")
         lines.append(f"board: {b.get('type')} ({desc})")
-    lines.append("")
-    lines.append(f"{'camera':<10} {'size':>10} {'fx':>9} {'fy':>9} {'cx':>8} {'cy':>8} {'rms px':>7} {'views':>5} {'cover':>6}  centre (m)")
+    return lines
+
+
+def _camera_table(calib: RigCalibration, rep: dict[str, Any] | None) -> list[str]:
+    """A row per camera: size, intrinsics, RMS, views, coverage, centre."""
+    lines = [f"{'camera':<10} {'size':>10} {'fx':>9} {'fy':>9} {'cx':>8} {'cy':>8} {'rms px':>7} {'views':>5} {'cover':>6}  centre (m)"]
     for cam in calib.cameras:
         c = (rep or {}).get("cameras", {}).get(cam.name, {})
         rms = c.get("rms_px")
@@ -409,15 +426,13 @@ def _format_report(calib: RigCalibration) -> str:
             f"{'-' if rms is None else f'{rms:.3f}':>7} {c.get('views_used', '-'):>5} {'-' if cov is None else f'{cov * 100:.0f}%':>6}  "
             + " ".join(f"{x:+.4f}" for x in cam.center)
         )
-    if rep is None:
-        if len(calib.cameras) >= 2:
-            a, b = calib.cameras[0], calib.cameras[-1]
-            lines.append("")
-            lines.append(f"baseline {a.name}-{b.name}: {np.linalg.norm(b.center - a.center) * 1000:.2f} mm")
-        lines.append("(this file carries no measurements: reprojection errors and coverage come from `rig calibrate run`)")
-        return "\n".join(lines)
-    lines.append("")
-    lines.append("one-sigma uncertainty of the intrinsics (px; 'unknown' where the adjustment could not compute it):")
+    return lines
+
+
+def _lens_lines(rep: dict[str, Any]) -> list[str]:
+    """The intrinsics' uncertainty, the verdicts, what was given or held, each lens against its own
+    fit and the pairing applied."""
+    lines = ["one-sigma uncertainty of the intrinsics (px; 'unknown' where the adjustment could not compute it):"]
     for name, c in rep["cameras"].items():
         std = c.get("std") or {}
         spread = c.get("focal_spread_pct")
@@ -450,6 +465,12 @@ def _format_report(calib: RigCalibration) -> str:
         terms = sorted({t for h in held.values() for t in h}, key=["k3", "k4", "p1", "p2"].index)
         who = "every camera" if len(held) == len(rep["cameras"]) else ", ".join(held)
         lines.append(f"held at 0 (not fitted): {' '.join(terms)} ({who})")
+    return lines
+
+
+def _stereo_lines(rep: dict[str, Any]) -> list[str]:
+    """The stereo pair's figures and the views' count."""
+    lines = []
     st = rep.get("stereo")
     if st:
         lines.append("")
@@ -459,8 +480,12 @@ def _format_report(calib: RigCalibration) -> str:
             f"(max {_fmt(st['epipolar_max_px'])} px)"
         )
     lines.append(f"views: {rep['views_total']} ({rep['views_multi_camera']} seen by two or more cameras)")
-    lines.append("")
-    lines.append("board coverage (# seen, . never):")
+    return lines
+
+
+def _coverage_lines(rep: dict[str, Any]) -> list[str]:
+    """Each camera's board coverage grid, four cameras side by side."""
+    lines = ["board coverage (# seen, . never):"]
     cams = list(rep["cameras"].items())
     for start in range(0, len(cams), 4):
         chunk = cams[start : start + 4]
@@ -468,6 +493,12 @@ def _format_report(calib: RigCalibration) -> str:
         lines.append("  " + "".join(f"{n[: width - 2]:<{width}}" for n, _ in chunk))
         for row in range(len(chunk[0][1]["coverage"]["grid"])):
             lines.append("  " + "".join(f"{c['coverage']['grid'][row]:<{width}}" for _, c in chunk))
+    return lines
+
+
+def _fault_lines(rep: dict[str, Any]) -> list[str]:
+    """The worst views, the rejections and the warnings."""
+    lines = []
     worst = sorted(
         ((max(v.values()), view, v) for view, v in rep.get("per_view", {}).items() if v), key=lambda x: -x[0]
     )[:5]
@@ -486,7 +517,7 @@ def _format_report(calib: RigCalibration) -> str:
         lines.append("warnings:")
         for w in rep["warnings"]:
             lines.append(f"  - {w}")
-    return "\n".join(lines)
+    return lines
 
 
 def _kept(name: str, lp: dict[str, Any]) -> str:
