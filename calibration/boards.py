@@ -231,6 +231,14 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
         }
     else:
         raise CalibrationError(f"{where}: 'type' must be \"chessboard\" or \"charuco\", not {kind!r}")
+    vals = _typed_values(d, allowed, where)
+    if kind == "chessboard":
+        return _chessboard(vals, where)
+    return _charuco(vals, where)
+
+
+def _typed_values(d: dict[str, Any], allowed: dict[str, Any], where: str) -> dict[str, Any]:
+    """The description's values, each of its key's type; unknown and missing keys refused."""
     for key in d:
         if key not in allowed:
             raise CalibrationError(f"{where}: unknown key '{key}' (allowed: {', '.join(allowed)})")
@@ -254,14 +262,22 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
         if typ is dict and not isinstance(v, dict):
             raise CalibrationError(f"{where}: '{key}' must be a table ([board.{key}] or {key} = {{...}}), got {v!r}")
         vals[key] = float(v) if typ is float else v
-    if kind == "chessboard":
-        if vals["cols"] < 2 or vals["rows"] < 2:
-            raise CalibrationError(f"{where}: 'cols' and 'rows' count inner corners and must be at least 2")
-        if vals["cols"] == vals["rows"]:
-            raise CalibrationError(f"{where}: a square chessboard ({vals['cols']}x{vals['rows']}) is ambiguous in orientation; use cols != rows")
-        if not 0 < vals["square_size"] < 10:
-            raise CalibrationError(f"{where}: 'square_size' must be in metres, between 0 and 10, got {vals['square_size']}")
-        return ChessboardSpec(**vals)
+    return vals
+
+
+def _chessboard(vals: dict[str, Any], where: str) -> ChessboardSpec:
+    """A chessboard's values, checked."""
+    if vals["cols"] < 2 or vals["rows"] < 2:
+        raise CalibrationError(f"{where}: 'cols' and 'rows' count inner corners and must be at least 2")
+    if vals["cols"] == vals["rows"]:
+        raise CalibrationError(f"{where}: a square chessboard ({vals['cols']}x{vals['rows']}) is ambiguous in orientation; use cols != rows")
+    if not 0 < vals["square_size"] < 10:
+        raise CalibrationError(f"{where}: 'square_size' must be in metres, between 0 and 10, got {vals['square_size']}")
+    return ChessboardSpec(**vals)
+
+
+def _charuco(vals: dict[str, Any], where: str) -> CharucoSpec:
+    """A ChArUco board's values, checked (its dictionary holds its markers, a back face its own)."""
     if vals["squares_x"] < 2 or vals["squares_y"] < 2:
         raise CalibrationError(f"{where}: 'squares_x' and 'squares_y' must be at least 2")
     if not 0 < vals["square_size"] < 10:
@@ -281,6 +297,13 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
     if first + n_markers > capacity:
         raise CalibrationError(f"{where}: a {vals['squares_x']}x{vals['squares_y']} board needs {n_markers} markers"
                                f"{f' from id {first}' if first else ''} but {dic} has {capacity}")
+    _back_face(vals, where, first, n_markers, capacity, dic)
+    vals["dictionary"] = dic
+    return CharucoSpec(**vals)
+
+
+def _back_face(vals: dict[str, Any], where: str, first: int, n_markers: int, capacity: int, dic: str) -> None:
+    """A two-sided board's back face (`back`), checked and moved into `vals` as the spec's fields."""
     back = vals.pop("back", None)
     if back is not None:
         unknown = set(back) - {"first_marker", "thickness"}
@@ -297,8 +320,6 @@ def board_from_dict(d: dict[str, Any], where: str = "board") -> BoardSpec:
             raise CalibrationError(f"{where}: back.thickness must be in metres, from 0 to 0.1, got {thick!r}")
         vals["back_first_marker"] = bfirst
         vals["thickness"] = float(thick)
-    vals["dictionary"] = dic
-    return CharucoSpec(**vals)
 
 
 def load_board(path: str | Path) -> BoardSpec:
