@@ -471,9 +471,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     model_path = Path(args.model) if args.model else None
     if model_path is not None and not model_path.is_file():
         raise ConfigError(f"{model_path}: no such model")
-    for seq in args.sequence:
-        if Path(seq).exists() and not Path(seq).is_dir():
-            raise ConfigError(f"--sequence {seq}: is a file, not a sequence folder")
     sequences = expand_sequences(args.sequence)
     data = TrainingSet(sequences)  # before the model loads: a take that cannot be evaluated costs nothing
     if len(data) == 0:

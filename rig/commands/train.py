@@ -179,31 +179,15 @@ def _check_options(args: argparse.Namespace):
     return cfg, out
 
 
-def _check_frames(roots: list[str]) -> None:
-    """Every indexed frame present and whole (its size and header, as `rig record validate` checks
-    without --pixels): a damaged take is one line before the output folder is written, not a stop
-    at the first batch that reads it, with a run that kept nothing."""
-    from rig.storage.validate import validate
-
-    for root in roots:
-        found = validate(root)
-        if found.errors:
-            more = len(found.errors) - 1
-            raise ConfigError(f"{root}: damaged ({found.errors[0]}{f'; and {more} more' if more else ''}); `rig record validate {root}` "
-                              f"lists every one, `rig record repair {root}` keeps every good set (nothing was trained or written)")
-
-
 def cmd_train(args: argparse.Namespace) -> int:
     from rig.commands._output import emit_json
     from rig.storage.dataset import TrainingSet, expand_sequences
+    from rig.storage.validate import check_whole
 
     # Everything a user can get wrong is checked before torch loads and before any work.
     cfg, out = _check_options(args)
-    for seq in args.sequences:
-        if seq.exists() and not seq.is_dir():
-            raise ConfigError(f"{seq}: is a file, not a sequence folder (give the folder rig record or rig sim dataset wrote)")
     data = TrainingSet(expand_sequences(args.sequences))
-    _check_frames(data.roots)
+    check_whole(data.roots)  # a damaged take is one line before the output folder is written
     if cfg.supervised:
         from inference.train.depth_supervision import truth_missing
 

@@ -197,9 +197,12 @@ class TrainingSet:
 
 
 def expand_sequences(paths: list[Path]) -> list[Path]:
-    """A folder with dataset.json (rig sim dataset) stands for its takes."""
+    """A folder with dataset.json (rig sim dataset) stands for its takes. A file given for a take is
+    SequenceError (one line), not the NotADirectoryError of reading into it later."""
     out = []
     for p in paths:
+        if p.exists() and not p.is_dir():
+            raise SequenceError(f"{p}: is a file, not a sequence folder (give the folder rig record or rig sim dataset wrote)")
         listing = p / "dataset.json"
         if listing.is_file():
             try:

@@ -71,6 +71,20 @@ def frame_problem(root: Path, entries: dict[str, CameraEntry], row: dict, cam: s
     return f"set {row['set']}: {name or cam}: {damage}"
 
 
+def check_whole(roots: list[str | Path], what: str = "nothing was trained or written") -> None:
+    """Every indexed frame of every take present and whole (its size and header, as `validate`
+    without pixels); SequenceError (one line) naming the first damaged one otherwise: a damaged take
+    is refused before a run starts, not at the first batch that reads the frame."""
+    from rig.storage.layout import SequenceError
+
+    for root in roots:
+        found = validate(root)
+        if found.errors:
+            more = len(found.errors) - 1
+            raise SequenceError(f"{root}: damaged ({found.errors[0]}{f'; and {more} more' if more else ''}); `rig record validate {root}` "
+                                f"lists every one, `rig record repair {root}` keeps every good set ({what})")
+
+
 def validate(root: str | Path, check_pixels: bool = False) -> Validation:
     """Check every indexed frame is present and whole; count sets, frames, gaps, skew."""
     root = Path(root)
