@@ -191,6 +191,11 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     return result
 
 
+# Deflate, PNG's compression, never stores data more than 1032 times smaller: a stated ratio above
+# this is a mistake, and it would let the disk check pass any disk.
+MAX_COMPRESS_RATIO = 1000.0
+
+
 def _check_take(cfg: RigConfig, seconds: Optional[float], sets: Optional[int], compress_ratio: Optional[float]) -> Optional[Path]:
     """The take's length and options, and the calibration file it copies (None: none)."""
     if seconds is None and sets is None:
@@ -202,8 +207,10 @@ def _check_take(cfg: RigConfig, seconds: Optional[float], sets: Optional[int], c
         calibration = cfg.resolve(cfg.calibration)
         if not calibration.is_file():
             raise ConfigError(f"rig.calibration: {calibration} does not exist (calibrate with `rig calibrate run`, or remove the key)")
-    if compress_ratio is not None and not compress_ratio >= 1.0:
-        raise ConfigError(f"record: --compress-ratio must be at least 1, got {compress_ratio:g}")
+    if compress_ratio is not None and not 1.0 <= compress_ratio <= MAX_COMPRESS_RATIO:
+        # inf (or 1e308) divided the rig's data rate to nothing: the disk check passed any disk
+        raise ConfigError(f"record: --compress-ratio must be from 1 to {MAX_COMPRESS_RATIO:g} (an earlier take's "
+                          f"compression_ratio), got {compress_ratio:g}")
     return calibration
 
 
