@@ -50,6 +50,57 @@ def _progress(label: str):
     return report
 
 
+def resized(model, preset: str):
+    """The same weights at another size preset (no weight depends on the sizes, inference/config.py)."""
+    from inference.config import ModelConfig, Sizes
+    from inference.model.pipeline import build_model
+
+    cfg = ModelConfig.from_dict(model.cfg.to_dict())
+    cfg.sizes = Sizes.preset(preset)
+    out = build_model(cfg, seed=0)
+    out.load_state_dict(model.state_dict())
+    return out.eval()
+
+
+# The code the cached references are computed by: a change to any of it measures them again.
+REFERENCE_CODE = ["inference/model", "inference/evaluate/model_eval.py", "inference/train/data.py", "inference/metrics.py",
+                  "inference/train/losses.py", "simulator", "rig/storage"]
+
+
+def reference_key(set_name: str, takes: list, picks: list, size, cfg) -> str:
+    """What the model-free references depend on: the set and its frame sets, the image size, the
+    untrained pipeline's configuration (all but the backbone and stage 1, which the oracle replaces)
+    and the code that computes them."""
+    import hashlib
+
+    h = hashlib.sha256()
+    d = cfg.to_dict()
+    d.pop("backbone", None)
+    d.pop("stage1", None)
+    h.update(json.dumps([set_name, list(takes), list(picks), list(size), d], sort_keys=True).encode())
+    for root in REFERENCE_CODE:
+        p = REPO / root
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(f.relative_to(REPO).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def read_references(path: Path, key: str):
+    try:
+        entry = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return entry.get("references") if isinstance(entry, dict) and entry.get("key") == key else None
+
+
+def write_references(path: Path, key: str, references: dict) -> None:
+    from common.files import atomic_path
+
+    with atomic_path(path, make_parents=True) as tmp:
+        Path(tmp).write_text(json.dumps({"key": key, "references": references}) + "\n")
+
+
 def main() -> int:
     from common.errors import ReportedError
     from inference.evaluate.heldout import SETS
@@ -62,6 +113,13 @@ def main() -> int:
     ap.add_argument("--takes", type=int, help="only the set's first N takes")
     ap.add_argument("--size", help="render the takes at WxH instead of the set's size (quick checks only; the model's own sizes are unchanged)")
     ap.add_argument("--every", type=int, default=1)
+    ap.add_argument("--sets-per-take", type=int, metavar="K",
+                    help="measure K frame sets of each take, spread over it (first and last among them), instead of every --every-th")
+    ap.add_argument("--model-size", choices=["test", "preview", "paper"],
+                    help="run the model at these sizes instead of its own (no weight depends on them)")
+    ap.add_argument("--reference-cache", type=Path, metavar="JSON",
+                    help="keep the references that do not depend on the model (the oracle with untrained stage 2, the nearer "
+                         "source) in this file and reuse them when the set, the frame sets, the sizes and the code are the same")
     ap.add_argument("--without-own-oracle", action="store_true",
                     help="leave out the oracle with this model's stage 2 (keeps the untrained-stage-2 oracle and the nearer source; a third less time)")
     ap.add_argument("--untrained", action="store_true", help="also evaluate the untrained model of the same configuration")
@@ -80,7 +138,7 @@ def main() -> int:
 def run(args: argparse.Namespace) -> int:
     from inference.errors import InferenceError
     from inference.evaluate.heldout import check_data, held_out_set, take_seeds
-    from inference.evaluate.model_eval import depth_lines, evaluate, oracle_twin, spread_lines, take_lines, vanished_lines
+    from inference.evaluate.model_eval import depth_lines, evaluate, oracle_twin, sets_per_take, spread_lines, take_lines, vanished_lines
     from inference.model.checkpoint import load_checkpoint
     from inference.model.pipeline import build_model
     from rig.storage.dataset import TrainingSet, expand_sequences
@@ -99,9 +157,13 @@ def run(args: argparse.Namespace) -> int:
             raise InferenceError(f"--size {args.size}: give WxH, e.g. 320x180") from None
     if not args.model.is_file():
         raise InferenceError(f"{args.model}: no such model")
+    if args.sets_per_take is not None and args.sets_per_take < 1:
+        raise InferenceError(f"--sets-per-take must be at least 1, got {args.sets_per_take}")
     trained = load_checkpoint(args.model)
     if trained.needs_depth:
         raise InferenceError(f"{args.model}: an oracle model reads ground-truth depth; evaluate a trained model")
+    if args.model_size is not None:
+        trained = resized(trained, args.model_size)
     untrained = build_model(trained.cfg, seed=0)
     oracles = {"oracle_untrained_stage2": oracle_twin(untrained)}
     with tempfile.TemporaryDirectory() as tmp:
@@ -116,13 +178,23 @@ def run(args: argparse.Namespace) -> int:
         names = meta["takes"][: args.takes or None]
         data = TrainingSet(expand_sequences([data_dir / n for n in names]))
         seeds = take_seeds(data_dir)
+        picks = sets_per_take(data, args.sets_per_take) if args.sets_per_take else list(range(0, len(data), args.every))
+        cache_key = reference_key(held.name, names, picks, size or held.size, trained.cfg)
+        cached = read_references(args.reference_cache, cache_key) if args.reference_cache and args.without_own_oracle else None
         results = {}
         runs = [("trained", trained, oracles)] + ([("untrained", untrained, None)] if args.untrained else [])
         for name, model, extra in runs:
             t0 = time.monotonic()
-            results[name] = evaluate(model, data, every=args.every, oracles=extra, own_oracle=not (extra and args.without_own_oracle),
+            reuse = cached is not None and name == "trained"
+            results[name] = evaluate(model, data, picks=picks, oracles=extra, references=not reuse,
+                                     own_oracle=not (extra and args.without_own_oracle),
                                      progress=None if args.quiet else _progress(f"{name} model"))
+            if reuse:
+                results[name]["references"] = cached
+            elif name == "trained" and args.reference_cache and args.without_own_oracle:
+                write_references(args.reference_cache, cache_key, results[name]["references"])
             results[name]["wall_s"] = round(time.monotonic() - t0, 1)
+            results[name]["references_cached"] = reuse
         figure = None
         takes = results["trained"]["takes"]
         worst_take = min(takes, key=lambda k: takes[k]["psnr"])
@@ -144,19 +216,24 @@ def run(args: argparse.Namespace) -> int:
     t = results["trained"]
     print(f"held-out set {held.name}: {len(names)} of its {held.takes} takes (data-set seed {held.seed}, take seeds "
           f"{min(seeds.get(n, 0) for n in names)} to {max(seeds.get(n, 0) for n in names)}), {held.seconds:g} s at {held.fps:g} fps, "
-          f"{t['sets']} frame sets x {len(t['supervision'])} supervision cameras; model {args.model} ({t['wall_s']:.0f} s with references)")
+          f"{t['sets']} frame sets x {len(t['supervision'])} supervision cameras; model {args.model} ({t['wall_s']:.0f} s with references"
+          f"{', those without the model read from ' + str(args.reference_cache) if t.get('references_cached') else ''})")
     rows = [("this model", t)] + [(n, r) for n, r in t["references"].items()]
     if args.untrained:
         u = results["untrained"]
         rows += [("untrained model", u), ("oracle, untrained (its)", u["references"].get("oracle"))]
-    print(f"{'':24s} {'PSNR':>7s} {'SSIM':>6s} {'PSNR mask':>10s} {'SSIM mask':>10s} {'vanished':>9s}")
+    # People first: the person-mask PSNR, vanished and the rendered depth on the person masks.
+    print(f"{'':24s} {'PSNR mask':>10s} {'vanished':>9s} {'depth mask':>10s} {'PSNR':>7s} {'SSIM':>6s} {'SSIM mask':>10s}")
     f = lambda v, fmt: (fmt % v) if v is not None else "-"
     for name, r in rows:
         if not r:
             continue
         o = r["overall"]
-        print(f"{name:24s} {f(o['psnr'], '%7.2f'):>7s} {f(o['ssim'], '%6.3f'):>6s} {f(o['psnr_mask'], '%10.2f'):>10s} "
-              f"{f(o['ssim_mask'], '%10.3f'):>10s} {f(r.get('vanished') and 100 * r['vanished'], '%8.2f%%'):>9s}")
+        person_depth = (r.get("spread") or {}).get("view_depth_absrel_person")
+        vanished = r.get("vanished")
+        print(f"{name:24s} {f(o['psnr_mask'], '%10.2f'):>10s} {f(None if vanished is None else 100 * vanished, '%8.2f%%'):>9s} "
+              f"{f(None if person_depth is None else 100 * person_depth['mean'], '%9.1f%%'):>10s} "
+              f"{f(o['psnr'], '%7.2f'):>7s} {f(o['ssim'], '%6.3f'):>6s} {f(o['ssim_mask'], '%10.3f'):>10s}")
     for line in depth_lines(t) + vanished_lines(t):
         print(line)
     print()

@@ -305,13 +305,17 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 }
 
 
-# Settings that no weight's shape depends on: how depth init splats and blends, how the Gaussian
+# Settings that no weight's shape depends on: the sizes (every weight is a convolution, a per-token
+# layer or an attention over averaged tokens: a model trained at one size runs and trains at another,
+# as the live model is exported at the test size from preview-size weights), how depth init splats and blends, how the Gaussian
 # plane is rendered, how colour init fades a source at its border, how far and in how many
 # candidates depth refinement searches (its 3-D convolutions slide along the candidates), and stage
-# 1's scale search. A run may start from weights trained with other values of these (fine-tuning to them).
-WEIGHT_FREE: dict[str, Any] = {"depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
+# 1's scale search, and the stereo backbone's nearest and farthest planes (the planes' count shapes its
+# refinement and tokens; their depths shape nothing, but its logits mean them, so a run that moves them
+# retrains the backbone). A run may start from weights trained with other values of these (fine-tuning to them).
+WEIGHT_FREE: dict[str, Any] = {"sizes": "*", "depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
                                "stage1": {"scale_search", "scale_search_range", "scale_search_floor", "translation_gate", "translation_along_rays"},
-                               "backbone": {"stereo_cascade_range", "stereo_input_scale"}}
+                               "backbone": {"stereo_cascade_range", "stereo_input_scale", "stereo_near", "stereo_far"}}
 
 # Weight-shaping keys a run may turn on over weights trained without them: the modules they add
 # start at zero and compute nothing until trained (section.key -> their parameters' prefix).

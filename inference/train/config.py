@@ -84,6 +84,11 @@ class TrainConfig:
     # neighbourhood: which plane re-projects the colours right is learned directly. Rendering only
     # the expected depth, people stayed doubled in the supervision views after 600 steps.
     plane_render: float = 1.0
+    # Weight of stage 1's rendering loss itself (the point maps splatted into the supervision views;
+    # 0: not rendered at all). With the supervised recipe, 0 (and plane_render, mvs_depth and
+    # loss.gamma 0) is depth-only pre-training, as GPS-Gaussian's first stage learns disparity alone
+    # before any rendering: a step is the backbone and the affine transform only, several times cheaper.
+    stage1_render: float = 1.0
     # Stage 1 also pulls each source's depth towards multi-view stereo depth from its nearest
     # supervision cameras (inference/train/multiview_depth.py: images and calibration only, never
     # ground truth) on the pixels where that depth is trusted: |log z - log z_mvs|, times this weight
@@ -96,6 +101,10 @@ class TrainConfig:
     eval_every: int = 200  # steps between evaluations (sample PNG, loss curve, held-out PSNR)
     eval_sets: int = 4  # held-out frame sets rendered at each evaluation
     checkpoint_every: int = 100  # steps between checkpoints (one is also written at each evaluation and at the end)
+    # Every this many steps the weights alone are also kept as snapshots/step-NNNNNN.pt (0: none), for
+    # a validation curve measured on held-out takes by another process (benchmarks/validation_curve.py)
+    # while the run goes on: the run's own evaluations read its training takes.
+    snapshot_every: int = 0
     seed: int = 0
     # A pretrained backbone (mast3r, PRETRAINED_BACKBONES) stays frozen in stage 1 unless this is set
     # (fine-tuning); backbones trained from scratch (stereo, tiny) always train.
@@ -141,6 +150,13 @@ class TrainConfig:
             raise InferenceError(f"train_backbone must be true or false, got {self.train_backbone!r}")
         if not (isinstance(self.stage2_trains_stage1, (int, float)) and self.stage2_trains_stage1 >= 0):
             raise InferenceError(f"stage2_trains_stage1 must be a number >= 0, got {self.stage2_trains_stage1!r}")
+        if not (isinstance(self.stage1_render, (int, float)) and not isinstance(self.stage1_render, bool)
+                and self.stage1_render >= 0 and math.isfinite(self.stage1_render)):
+            raise InferenceError(f"stage1_render must be a number >= 0, got {self.stage1_render!r}")
+        if (self.stage1.steps > 0 and self.stage1_render == 0 and not self.supervised and self.plane_render == 0
+                and self.mvs_depth == 0 and self.loss.gamma == 0):
+            raise InferenceError("stage 1 has nothing to learn from: stage1_render, plane_render, mvs_depth and loss.gamma are all 0 "
+                                 "and the recipe is self-supervised (give the supervised recipe, or a weight above 0)")
         if not (isinstance(self.mvs_depth, (int, float)) and self.mvs_depth >= 0):
             raise InferenceError(f"mvs_depth must be a number >= 0, got {self.mvs_depth!r}")
         try:
@@ -152,6 +168,8 @@ class TrainConfig:
 
         if not isinstance(self.lr_factors, dict) or not all(factor_ok(k, v) for k, v in self.lr_factors.items()):
             raise InferenceError(f"lr_factors must map parameter name prefixes to numbers > 0, got {self.lr_factors!r}")
+        if not isinstance(self.snapshot_every, int) or isinstance(self.snapshot_every, bool) or self.snapshot_every < 0:
+            raise InferenceError(f"snapshot_every must be an integer >= 0, got {self.snapshot_every!r}")
         for name in ("mvs_neighbours", "supervision_per_step", "frame_stride", "eval_every", "checkpoint_every", "eval_sets"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:

@@ -133,9 +133,11 @@ def _overlap(points: torch.Tensor, to_other: torch.Tensor, K: torch.Tensor, size
 
 class Stage1Loss(nn.Module):
     def __init__(self, model: SplatSAP, weights: LossWeights, point_radius: int = 1, render_scales: tuple[int, ...] = (1,),
-                 plane_render: float = 0.0, mvs_depth: float = 0.0, depth_supervision: DepthSupervision | None = None):
+                 plane_render: float = 0.0, mvs_depth: float = 0.0, depth_supervision: DepthSupervision | None = None,
+                 render: float = 1.0):
         super().__init__()
         self.depth_supervision = depth_supervision  # the supervised recipe's weights (None: self-supervised)
+        self.render = render  # weight of the point maps' rendering loss (0: not rendered, depth terms alone)
         self.plane_render = plane_render
         self.mvs_depth = mvs_depth
         self.model = model
@@ -157,14 +159,14 @@ class Stage1Loss(nn.Module):
         args = (_expand(pts, n), _expand(cols, n), _expand(ops, n), to_target)
         render = None
         l_render = 0.0
-        for k in self.scales:
+        for k in self.scales if self.render > 0 else ():
             size = (cw // k, ch // k)
             truth = batch.targets.images if k == 1 else F.avg_pool2d(batch.targets.images, k)
             r = splat_points(*args, resize_intrinsics(batch.targets.K, (cw, ch), size), size, self.splat)
             l_render = l_render + rendering_loss(r.image, truth, self.w.beta_l1, self.w.beta_ssim) / len(self.scales)
             if k == self.scales[0]:
                 render, render_truth = r, truth
-        loss = l_render
+        loss = self.render * l_render
         l_planes = None
         if self.plane_render > 0 and pm.planes is not None:
             l_planes = self._planes(pm.planes, affine.scale, left_c, right_c, batch, to_target, (cw, ch))
@@ -190,15 +192,15 @@ class Stage1Loss(nn.Module):
             cd = chamfer_6d(point_colour_set(affine.points_left, left_c), point_colour_set(affine.points_right, right_c), w_l, w_r)
             loss = loss + self.gamma * cd
         with torch.no_grad():
-            mse = ((render.image - render_truth) ** 2).mean()
+            seen = {} if render is None else {"psnr": float(-10.0 * torch.log10(((render.image - render_truth) ** 2).mean().clamp(min=1e-10))),
+                                              "coverage": float(render.alpha.mean())}
             metrics = {"loss": float(loss), "render": float(l_render), "gamma": self.gamma,
                        **({"chamfer": float(cd)} if cd is not None else {}),
                        **({"planes": float(l_planes)} if l_planes is not None else {}),
                        **({"mvs": float(l_mvs)} if l_mvs is not None else {}), **truth_parts,
-                       "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10))), "scale": float(affine.scale.mean()),
-                       "coverage": float(render.alpha.mean())}
+                       **seen, "scale": float(affine.scale.mean())}
         check_finite(1, metrics["loss"])
-        return loss, metrics, {"render": render.image.detach(), "truth": render_truth}
+        return loss, metrics, {} if render is None else {"render": render.image.detach(), "truth": render_truth}
 
 
     def _planes(self, planes, scale, left_c, right_c, batch: Batch, to_target, coarse: tuple[int, int]) -> torch.Tensor:

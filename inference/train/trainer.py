@@ -50,6 +50,7 @@ CHECKPOINT = "checkpoint.pt"
 FINAL = "model.pt"
 METRICS = "metrics.jsonl"
 MVS_CACHE = "mvs-depth"
+SNAPSHOTS = "snapshots"
 PRECISIONS = ("fp32", "bf16")
 DEFAULT_CACHE_MB = 2048.0
 Progress = Callable[[int, int, dict], None]
@@ -393,7 +394,8 @@ class Trainer:
             param_groups += [{"params": ps, "lr_factor": f} for f, ps in by_factor.items()]
         w = self.cfg.loss
         truth = self.cfg.depth_supervision if self.cfg.supervised else None
-        module = (Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth, truth) if stage == 1
+        module = (Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth, truth,
+                             self.cfg.stage1_render) if stage == 1
                   else Stage2Loss(m, w, self.cfg.mvs_depth if self.cfg.stage2_trains_stage1 > 0 else 0.0,
                                   truth if self.cfg.stage2_trains_stage1 > 0 else None))
         if self.world > 1:
@@ -473,6 +475,9 @@ class Trainer:
                         or self.step == stop_at or stop.requested or timed_out or on_clock):
                     self._save(self.out / CHECKPOINT, optimizer)
                     saved_at = time.monotonic()
+                if cfg.snapshot_every and self.step % cfg.snapshot_every == 0:
+                    # the weights alone (a model checkpoint), kept for a validation curve measured apart
+                    self._save(self.out / SNAPSHOTS / f"step-{self.step:06d}.pt", None, final=True)
                 if stop.requested:
                     raise KeyboardInterrupt
                 if timed_out:

@@ -161,3 +161,40 @@ def test_the_benchmark_says_what_is_wrong_in_one_line(tmp_path, argv, said):
     r = subprocess.run([sys.executable, str(script), *[a.format(tmp=tmp_path) for a in argv], "--quiet"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and said in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+
+
+def test_sets_per_take_picks_the_first_and_last_sets_of_every_take():
+    from types import SimpleNamespace
+
+    from inference.evaluate.model_eval import sets_per_take
+
+    # Three takes of 5, 2 and 1 complete sets, as TrainingSet.positions lists them (take, set).
+    source = SimpleNamespace(positions=[(0, p) for p in range(5)] + [(1, 0), (1, 3)] + [(2, 7)])
+    assert sets_per_take(source, 2) == [0, 4, 5, 6, 7]
+    assert sets_per_take(source, 3) == [0, 2, 4, 5, 6, 7]
+    assert sets_per_take(source, 1) == [0, 5, 7]
+    with pytest.raises(ValueError):
+        sets_per_take(source, 0)
+
+
+def test_the_reference_cache_key_follows_the_frame_sets_the_sizes_and_the_stage2_configuration():
+    import sys
+    from pathlib import Path
+
+    from inference.config import ModelConfig, Sizes
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import model_eval as bench
+
+    cfg = ModelConfig.for_backbone("stereo", Sizes.preset("preview"))
+    key = bench.reference_key("validation", ["take-000"], [0, 4], (640, 360), cfg)
+    assert key == bench.reference_key("validation", ["take-000"], [0, 4], (640, 360), ModelConfig.from_dict(cfg.to_dict()))
+    other_stage1 = ModelConfig.from_dict(cfg.to_dict())
+    other_stage1.stage1.scale_search = 21  # replaced by the oracle: the same references
+    other_stage1.backbone.stereo_near = 0.4
+    assert key == bench.reference_key("validation", ["take-000"], [0, 4], (640, 360), other_stage1)
+    other_stage2 = ModelConfig.from_dict(cfg.to_dict())
+    other_stage2.stage2.visibility_ramp = 8.0
+    assert len({key, bench.reference_key("validation", ["take-000"], [0, 3], (640, 360), cfg),
+                bench.reference_key("validation", ["take-000"], [0, 4], (320, 180), cfg),
+                bench.reference_key("validation", ["take-000"], [0, 4], (640, 360), other_stage2)}) == 4

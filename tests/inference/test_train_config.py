@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from inference.config import ModelConfig, weight_differences
+from inference.config import ModelConfig, Sizes, weight_differences
 from inference.errors import InferenceError
 from inference.train.config import TrainConfig
 
@@ -48,3 +48,16 @@ def test_lr_factor_takes_the_longest_matching_prefix():
     for bad in ({"point_init.": 0}, {"": 2}, {"point_init.": True}, {"point_init.": "2"}):
         with pytest.raises(InferenceError, match="lr_factors"):
             TrainConfig(lr_factors=bad).check()
+
+
+def test_init_may_change_the_sizes_and_the_stereo_planes_range():
+    """A run may start from weights trained at another size (a resolution curriculum; the live model
+    is exported at the test size from preview weights) or with the stereo planes elsewhere (the
+    run retrains the backbone to them); the planes' count shapes weights and may not change."""
+    base = ModelConfig.for_backbone("stereo", Sizes.preset("preview"))
+    other = ModelConfig.from_dict(base.to_dict())
+    other.sizes = Sizes.preset("test")
+    other.backbone.stereo_near, other.backbone.stereo_far = 0.4, 4.0
+    assert weight_differences(base, other) == []
+    other.backbone.stereo_depths = 56
+    assert weight_differences(base, other) == ["backbone.stereo_depths"]

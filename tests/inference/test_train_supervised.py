@@ -224,3 +224,34 @@ def test_the_nearest_person_measurement_agrees_with_the_rendered_depth():
         # The renderer samples pixel centres (never nearer than the surface); the measurement samples
         # the surface (never farther than a pixel's ray would meet it, up to the point spacing).
         assert measured == pytest.approx(rendered, abs=0.03)
+
+
+def test_depth_only_pretraining_renders_nothing_and_keeps_snapshots(take, tmp_path):
+    """stage1_render 0 with the other self-supervised terms off: stage 1 learns from the truth alone
+    (no splatting into the supervision views); snapshot_every keeps the weights for a validation curve."""
+    from inference.model.checkpoint import load_checkpoint
+    from inference.train.trainer import Trainer
+    from rig.storage.dataset import TrainingSet
+
+    cfg = _config("supervised", 2)
+    cfg.stage1_render, cfg.plane_render, cfg.loss.gamma = 0.0, 0.0, 0.0
+    cfg.snapshot_every = 1
+    trainer = Trainer(cfg, TrainingSet([take]), tmp_path / "run", device=torch.device("cpu"))
+    trainer.run()
+    steps = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    train_steps = [r for r in steps if not r.get("eval")]
+    assert len(train_steps) == 2 and all(r["render"] == 0.0 and "psnr" not in r and "depth_metric" in r for r in train_steps)
+    snaps = sorted(p.name for p in (tmp_path / "run" / "snapshots").iterdir())
+    assert snaps == ["step-000001.pt", "step-000002.pt"]
+    last = load_checkpoint(tmp_path / "run" / "snapshots" / "step-000002.pt")
+    final = load_checkpoint(tmp_path / "run" / "model.pt")
+    assert all(torch.equal(a, b) for a, b in zip(last.state_dict().values(), final.state_dict().values()))
+
+
+def test_a_stage1_with_nothing_to_learn_from_is_refused():
+    with pytest.raises(InferenceError, match="nothing to learn"):
+        TrainConfig.from_dict({"stage1_render": 0, "plane_render": 0, "mvs_depth": 0, "loss": {"gamma": 0}})
+    TrainConfig.from_dict({"recipe": "supervised", "stage1_render": 0, "plane_render": 0, "mvs_depth": 0, "loss": {"gamma": 0}})
+    for bad in ({"stage1_render": -1}, {"snapshot_every": -2}, {"stage1_render": True}):
+        with pytest.raises(InferenceError):
+            TrainConfig.from_dict(bad)
