@@ -12,7 +12,7 @@ device, so a camera that vanished is reported as disconnected rather than merely
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Optional
 
 from rig.cameras.base import Camera, DeviceInfo
 from rig.cameras.pixels import BYTES_PER_PIXEL, buffer_to_image
@@ -101,6 +101,7 @@ class AravisCamera(Camera):
         self.model = self._cam.get_model_name() or ""
         self.serial = self._cam.get_device_serial_number() or ""
         self._configure()
+        self._reported = {"exposure_us": self._read(self._exposure_feature()), "gain": self._read(self._gain_feature())}
 
     # --- configuration ---------------------------------------------------------------------------
     def _has(self, feature: str) -> bool:
@@ -338,6 +339,55 @@ class AravisCamera(Camera):
             finally:
                 self._stream.push_buffer(buf)
 
+    # --- exposure and gain while acquiring (GenICam features, read back from the device) ----------------
+    def _exposure_feature(self) -> Optional[str]:
+        return next((f for f in ("ExposureTime", "ExposureTimeAbs") if self._has(f)), None)
+
+    def _gain_feature(self) -> Optional[str]:
+        return next((f for f in ("Gain", "GainRaw") if self._has(f)), None)
+
+    def _read(self, feature: Optional[str]) -> Optional[float]:
+        if feature is None:
+            return None
+        try:
+            return float(self._cam.get_integer(feature) if feature == "GainRaw" else self._cam.get_float(feature))
+        except Exception:
+            return None
+
+    def _bounds(self, feature: Optional[str]) -> Optional[list[float]]:
+        if feature is None:
+            return None
+        try:
+            lo, hi = (self._cam.get_integer_bounds(feature) if feature == "GainRaw" else self._cam.get_float_bounds(feature))
+            return [float(lo), float(hi)]
+        except Exception:
+            return None
+
+    def controls(self) -> dict:
+        exposure, gain = self._exposure_feature(), self._gain_feature()
+        ranges = {k: b for k, b in (("exposure_us", self._bounds(exposure)), ("gain", self._bounds(gain))) if b is not None}
+        self._reported = {"exposure_us": self._read(exposure), "gain": self._read(gain)}
+        return {**self._reported, "ranges": ranges, "live": True}
+
+    def set_controls(self, exposure_us=None, gain=None) -> dict:
+        from rig.cameras.base import check_control
+
+        exposure, gain_feature = self._exposure_feature(), self._gain_feature()
+        wanted = []
+        for key, value, feature in (("exposure_us", exposure_us, exposure), ("gain", gain, gain_feature)):
+            if value is None:
+                continue
+            if feature is None:
+                raise DeviceError(f"{self.name}: {self.uri} has no {key.split('_')[0]} feature")
+            bounds = self._bounds(feature) or [0.0, float("inf")]
+            wanted.append((feature, check_control(self.name, key, value, tuple(bounds))))
+        for feature, value in wanted:  # all checked first: a bad value changes nothing
+            auto = "ExposureAuto" if feature.startswith("Exposure") else "GainAuto"
+            if self._has(auto):
+                self._set(auto, "Off")
+            self._set(feature, int(round(value)) if feature == "GainRaw" else float(value))
+        return self.controls()
+
     def _decode(self, buf) -> Frame:
         s = self.settings
         width, height = buf.get_image_width(), buf.get_image_height()
@@ -353,7 +403,8 @@ class AravisCamera(Camera):
             # the stream thread stamps arrival on the realtime clock; express it on the monotonic one
             host_ts_ns=int(buf.get_system_timestamp()) - self._realtime_offset_ns,
             pixel_format=s.pixel_format,
-            exposure_us=self.settings.exposure_us,
+            # what the device reported when last read (opening, or a control change), not the config's wish
+            exposure_us=(getattr(self, "_reported", None) or {}).get("exposure_us", self.settings.exposure_us),
         )
 
     def stream_statistics(self) -> dict[str, int]:

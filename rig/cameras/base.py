@@ -102,6 +102,22 @@ class Camera(abc.ABC):
         is back. Backends that cannot tell keep the default: the camera stays lost."""
         return False
 
+    # exposure and gain while acquiring -----------------------------------------------------------
+    def controls(self) -> dict[str, Any]:
+        """What the camera reports it exposes and amplifies with now, and what it accepts:
+        {"exposure_us": float | None, "gain": float | None, "ranges": {"exposure_us": [lo, hi], "gain": [lo, hi]},
+        "live": bool}. `live` False: the backend takes them only when it opens (`set_controls` refuses)."""
+        return {"exposure_us": self.settings.exposure_us, "gain": self.settings.gain, "ranges": {}, "live": False}
+
+    def set_controls(self, exposure_us: Optional[float] = None, gain: Optional[float] = None) -> dict[str, Any]:
+        """Set the exposure (microseconds) and/or the gain (dB) while acquiring, then read back what
+        the camera reports (`controls()`): a camera may round or clamp a value, and the caller shows
+        what it got, not what it asked for. A value outside `ranges` raises ConfigError, and nothing
+        changes; a backend that takes them only when it opens raises DeviceError."""
+        from rig.errors import DeviceError
+
+        raise DeviceError(f"{self.name}: this camera takes its exposure and gain only when it opens; change them in the rig's config")
+
     # frames --------------------------------------------------------------------------------------
     def get_frame(self, timeout: float = 1.0) -> Frame:
         """The next frame; raises CameraTimeout or CameraDisconnected. Counts gaps in frame ids."""
@@ -155,3 +171,17 @@ class Camera(abc.ABC):
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name} {self.uri}>"
+
+
+def check_control(name: str, key: str, value: Any, bounds: tuple[float, float]) -> float:
+    """`value` for control `key` of camera `name` as a float within `bounds`, else one ConfigError line."""
+    import math
+
+    from rig.errors import ConfigError
+
+    lo, hi = bounds
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{name}: {key} must be a number from {lo:g} to {hi:g}, got {value!r}")
+    if not lo <= float(value) <= hi:
+        raise ConfigError(f"{name}: {key} {float(value):g} is outside what the camera takes ({lo:g} to {hi:g})")
+    return float(value)

@@ -83,6 +83,11 @@ class SimCamera(Camera):
             source = self._scene_source(settings, seed)
         self.source = source
         self.exposure_s = (settings.exposure_us or 5000.0) * 1e-6
+        # What the image source renders at (a replayed loop is rendered once, at the opening exposure
+        # and gain); a control changed while acquiring scales the rendered signal, as a linear sensor does.
+        self._rendered_exposure_s = self.exposure_s
+        self.gain_db = float(settings.gain or 0.0)
+        self._rendered_gain_db = self.gain_db
         self.truth_pulse: dict[int, int] = {}
         self._requests: list[tuple[int, int, Optional[int]]] = []  # heap of (expose_ns, seq, pulse)
         self._seq = itertools.count()
@@ -114,11 +119,35 @@ class SimCamera(Camera):
         self.sensor = sim_rig(rig).sensor(settings.name)
         return self.sensor.image_source()
 
+    # --- exposure and gain while acquiring -------------------------------------------------------------
+    GAIN_DB = (0.0, 24.0)
+
+    def exposure_range_us(self) -> tuple[float, float]:
+        """From 20 us to the frame period (a sensor cannot expose longer than one frame at its rate)."""
+        return (20.0, 1e6 / self.settings.fps if self.settings.fps else 1e6)
+
+    def controls(self) -> dict:
+        return {"exposure_us": round(self.exposure_s * 1e6, 3), "gain": self.gain_db,
+                "ranges": {"exposure_us": list(self.exposure_range_us()), "gain": list(self.GAIN_DB)}, "live": True}
+
+    def set_controls(self, exposure_us=None, gain=None) -> dict:
+        from rig.cameras.base import check_control
+
+        new_exposure = None if exposure_us is None else check_control(self.name, "exposure_us", exposure_us, self.exposure_range_us())
+        new_gain = None if gain is None else check_control(self.name, "gain", gain, self.GAIN_DB)
+        with self._cv:  # both or neither
+            if new_exposure is not None:
+                self.exposure_s = new_exposure * 1e-6
+            if new_gain is not None:
+                self.gain_db = new_gain
+        return self.controls()
+
     def scene_time(self, t: float) -> float:
         """The scene time an exposure starting at simulated time t shows (the loop replays frames)."""
         if self.sensor is None:
             return t + self.exposure_s / 2
-        return self.sensor.scene_time(t, self.exposure_s)
+        looped = bool(getattr(self.sensor, "loop_frames", 0))
+        return self.sensor.scene_time(t, self._rendered_exposure_s if looped else self.exposure_s)
 
     # --- clocks ------------------------------------------------------------------------------------
     def device_time_ns(self, host_ns: int) -> int:
@@ -277,7 +306,13 @@ class SimCamera(Camera):
             # A calibration session counts time in views: exposure k shows station k, whatever the
             # host clock says (every camera of the rig is triggered once per synchronised view).
             t = self._session.scene_time(frame_id - 1)
-        rgb = self.source(t, self.exposure_s, self.rng)
+        # A replayed loop, or a test pattern, is rendered at the opening exposure: scale it; a scene
+        # rendered per frame integrates the exposure itself (its motion blur too).
+        fixed = self.sensor is None or bool(getattr(self.sensor, "loop_frames", 0))
+        rgb = self.source(t, self._rendered_exposure_s if fixed else self.exposure_s, self.rng)
+        scale = (self.exposure_s / self._rendered_exposure_s if fixed else 1.0) * 10.0 ** ((self.gain_db - self._rendered_gain_db) / 20.0)
+        if scale != 1.0:
+            rgb = np.clip(rgb.astype(np.float32) * np.float32(scale) + 0.5, 0, 255).astype(np.uint8)
         s = self.settings
         raw = from_rgb(rgb, s.pixel_format)  # what the sensor sends, decoded as a real backend decodes it
         image = demosaic(raw, s.pixel_format) if is_bayer(s.pixel_format) else raw

@@ -160,3 +160,29 @@ def test_a_camera_powered_off_and_on_again_is_reconnected(fake_camera):
             assert ids == sorted(ids)
         finally:
             again.kill()
+
+
+def test_exposure_and_gain_change_while_acquiring_and_are_read_back_from_the_device(fake_camera):
+    """The console sets them live: what the device reports comes back (and rides on every frame);
+    a value beyond the device's own bounds is refused and changes nothing."""
+    from rig.errors import ConfigError
+
+    cfg = CameraConfig(name="left", uri=fake_camera.uri, width=320, height=240, pixel_format="Mono8", fps=30.0,
+                       trigger="free", exposure_us=2000.0, gain=5.0)
+    with open_camera(cfg) as cam:
+        cam.start()
+        cam.get_frame(2.0)
+        before = cam.controls()
+        assert before["live"] and before["exposure_us"] == pytest.approx(2000.0) and before["gain"] == 5.0
+        lo, hi = before["ranges"]["exposure_us"]
+        after = cam.set_controls(exposure_us=3500.0, gain=7)
+        assert after["exposure_us"] == pytest.approx(3500.0) and after["gain"] == 7.0
+        assert cam._cam.get_float("ExposureTimeAbs") == pytest.approx(3500.0)
+        deadline = time.monotonic() + 3.0
+        while cam.get_frame(2.0).exposure_us != pytest.approx(3500.0):
+            assert time.monotonic() < deadline, "frames never carried the new exposure"
+        with pytest.raises(ConfigError, match="outside what the camera takes"):
+            cam.set_controls(exposure_us=hi * 10 + 1, gain=6)
+        with pytest.raises(ConfigError, match="must be a number"):
+            cam.set_controls(exposure_us=float("nan"))
+        assert cam.controls()["exposure_us"] == pytest.approx(3500.0) and cam.controls()["gain"] == 7.0

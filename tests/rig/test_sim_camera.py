@@ -121,3 +121,29 @@ def test_unplugged_camera_reports_disconnect():
         with pytest.raises(CameraDisconnected):
             for _ in range(200):
                 cam.get_frame(0.5)
+
+
+def test_exposure_and_gain_change_while_acquiring_and_the_image_follows():
+    from rig.errors import ConfigError
+
+    with sim_camera("free", fps=100) as cam:
+        cam.start()
+        def settled(exposure_us):
+            for _ in range(20):  # frames exposed before the change may still be queued
+                frame = cam.get_frame(1.0)
+                if frame.exposure_us == pytest.approx(exposure_us):
+                    return np.mean([cam.get_frame(1.0).image.mean() for _ in range(3)])
+            raise AssertionError("frames never carried the new exposure")
+
+        before = settled(1000.0)
+        got = cam.set_controls(exposure_us=500.0)
+        assert got["exposure_us"] == 500.0 and got["gain"] == 0.0 and got["live"]
+        assert settled(500.0) == pytest.approx(before / 2, rel=0.1)  # half the light
+        got = cam.set_controls(gain=6.0206)
+        assert settled(500.0) == pytest.approx(before, rel=0.1)  # +6 dB: twice the signal again
+        lo, hi = got["ranges"]["exposure_us"]
+        assert hi == pytest.approx(10000.0)  # one frame period at 100 fps
+        for bad in ({"exposure_us": hi + 1}, {"exposure_us": -5}, {"gain": 99}, {"exposure_us": "1000"}, {"gain": True}):
+            with pytest.raises(ConfigError):
+                cam.set_controls(**bad)
+        assert cam.controls()["exposure_us"] == 500.0 and cam.controls()["gain"] == 6.0206
