@@ -34,7 +34,7 @@ HEAVY = ("torch", "torchvision", "onnx", "onnxscript")  # training and export on
 # rig's sub-packages and top-level modules, bottom to top. The config asks the camera backends what
 # they cannot do; the daemons serve cameras and boards; storage writes what capture hands it; live
 # shows what capture and storage give; render runs a recorded take through live's model and
-# viewpoints; the doctor looks at all of it; the commands drive everything.
+# viewpoints; the doctor looks at all of it; the console runs it from a page; the commands drive everything.
 RIG_LAYERS = (
     ("rig", "rig.errors"),
     ("rig.progress", "rig.http_access"),
@@ -48,6 +48,7 @@ RIG_LAYERS = (
     ("rig.render",),  # a recorded take through the model, outside the live loop
     ("rig.demo",),  # what rig demo builds around the ordinary steps
     ("rig.doctor",),
+    ("rig.console",),  # the crew's page over the same library the commands call
     ("rig.commands",),
     ("rig.cli",),
     ("rig.__main__",),

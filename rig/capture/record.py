@@ -20,6 +20,7 @@ from rig.progress import StatusLine, rate, rate_text
 from rig.truth import take_truth
 from rig.capture.cards import CardShutters
 from rig.capture.session import TAKE_NEEDS_LIVE
+from rig.capture.tap import guard, tapped
 from rig.storage.disk import check_disk, rig_data_rate
 from rig.storage.layout import FLASHES
 from rig.storage.recorder import SequenceWriter
@@ -124,13 +125,17 @@ class RecordResult:
 def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Optional[int] = None,
            status: Optional[StatusLine] = None, notes: Optional[Callable[[str], None]] = None,
            flash: Optional[bool] = None, codec: str = "raw", disk_check: bool = True,
-           compress_ratio: Optional[float] = None) -> RecordResult:
+           compress_ratio: Optional[float] = None, stop: Optional[threading.Event] = None,
+           tap=None) -> RecordResult:
     """Record to the new folder `out`; `status` shows the take as it goes, `notes` hears the start-up
     phases (rig/progress.py). `flash`: flash the board's LED for `rig record align` (default: when
     the rig has free-running cameras and a trigger board). `codec`: raw or png (lossless).
     `disk_check`: before anything starts, measure the output disk and refuse (DiskTooSlow, exit 2)
     a rig whose data rate it cannot take; `compress_ratio`: with png, the compression ratio to count
-    (an earlier take's `compression_ratio`); unknown, compression counts for nothing."""
+    (an earlier take's `compression_ratio`); unknown, compression counts for nothing.
+    `stop`: set it to end the take early, as its length would (every set in flight is written).
+    `tap`: an onlooker of the take (the console's previews and controls, rig.capture.tap.SessionTap):
+    told of the open session, of each set written, and of the end; it never holds the take up."""
     from rig.capture.session import RigSession
 
     calibration = _check_take(cfg, seconds, sets, compress_ratio)
@@ -149,12 +154,13 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
     session = None
     flashes = None
     shutters = None
+    tap = guard(tap)
     if flash is None:
         flash = cfg.trigger is not None and any(c.trigger == "free" for c in cfg.cameras)
     try:
         # A recording can wait for late frames (a busy host, a slow disk) longer than live output can.
         session = RigSession(cfg, max_wait_s=RECORD_MAX_WAIT_S, on_phase=notes)
-        with session:
+        with session, tapped(tap, session):
             # A board rig records a train of exactly N pulses; otherwise the session is stopped when
             # enough is recorded, and every set still in flight is written before the end.
             session.start(pulses=sets if (sets is not None and session.board is not None) else 0)
@@ -164,7 +170,7 @@ def record(cfg: RigConfig, out: Path, seconds: Optional[float] = None, sets: Opt
                     flashes = _Flashes(_Flasher(session, Path(out)), {c.name for c in live if c.trigger == "free"},
                                        seconds if seconds is not None else sets / rate)
                 _write_sets(session, writer, result, clock, seconds=seconds, sets=sets, flashes=flashes, status=status,
-                            notes=notes, out=out)
+                            notes=notes, out=out, stop=stop, tap=tap)
                 session_stats = session.camera_stats()
                 result.errors.extend(session.errors())
                 if flashes is not None:
@@ -265,10 +271,13 @@ class _Flashes:
 
 def _write_sets(session, writer: SequenceWriter, result: RecordResult, clock: _TakeClock, *, seconds: Optional[float],
                 sets: Optional[int], flashes: Optional[_Flashes], status: Optional[StatusLine],
-                notes: Optional[Callable[[str], None]], out: Path) -> None:
-    """Write the session's sets until the take has its length, the board's train ended or the
-    storage failed; then the sets still in flight."""
-    for fs in session.framesets(until=lambda: seconds is not None and clock.t_first is not None and clock.elapsed() >= seconds):
+                notes: Optional[Callable[[str], None]], out: Path, stop: Optional[threading.Event] = None, tap=None) -> None:
+    """Write the session's sets until the take has its length, the board's train ended, `stop` is
+    set or the storage failed; then the sets still in flight."""
+    def over() -> bool:
+        return (stop is not None and stop.is_set()) or (seconds is not None and clock.t_first is not None and clock.elapsed() >= seconds)
+
+    for fs in session.framesets(until=over):
         if _behind(fs, result, notes):
             continue
         if not writer.write(fs):
@@ -276,6 +285,9 @@ def _write_sets(session, writer: SequenceWriter, result: RecordResult, clock: _T
             session.stop()
             break
         result.sets += 1
+        if tap is not None:
+            tap.frame_set(fs, {"sets": result.sets, "complete": writer.complete_sets, "skipped": result.sets_skipped,
+                               "bytes": writer.bytes_written})
         if clock.t_first is None:
             clock.first_set()
         elapsed = clock.elapsed()

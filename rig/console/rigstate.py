@@ -1,0 +1,373 @@
+"""The rig as the console runs it: one owner of the cameras at a time, previews from whatever runs.
+
+    rig = ConsoleRig(cfg)          # rig.config.RigConfig
+    rig.start()                    # previews: a RigSession of its own while nothing else runs
+    rig.set_controls("left", exposure_us=3000)   # live, read back from the camera
+    rig.start_take("take-007", notes="...")      # rig.capture.record.record, in a thread of its own
+    rig.stop_take()
+    rig.status()                   # what GET /api/status returns
+    rig.close()
+
+The console writes no capture, sync or recording logic of its own: previews come from a
+`RigSession` while the rig is idle, and a take is `rig record`'s own `record()` (the same disk
+check, the same writer), which the console hears through a tap (rig.capture.tap). In-process
+cameras can be opened once, so the preview session closes before a take opens its own and opens
+again after it; during the take the tap shows its sets. The tap only keeps references to the
+newest frames: nothing on the take's thread encodes, copies or waits (previews are encoded at
+the viewers' rate, on the server's threads, from the newest frame; a frame not yet sent is
+replaced, never queued).
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from rig.console import takes as take_names
+from rig.errors import ConfigError, RigError
+
+log = logging.getLogger(__name__)
+
+FPS_WINDOW_S = 2.0  # a camera's fps is measured over the frames of the last this many seconds
+FPS_WARN = 0.02  # a tile turns amber when its fps is more than 2 % off the target
+STALE_S = 2.0  # no frame for this long: the camera is stopped (red)
+RETRY_S = 2.0  # a preview session that failed to open is tried again after this long
+EVENTS_KEPT = 50
+
+
+@dataclass
+class CameraView:
+    """What one tile shows: the newest frame and the figures around it."""
+
+    name: str
+    role: str
+    target_fps: float
+    frame: Any = None  # the newest sync.frames.Frame
+    frame_at: Optional[float] = None  # host monotonic seconds it arrived
+    seq: int = 0  # counts frames seen (a preview is sent when it moved)
+    arrivals: deque = field(default_factory=lambda: deque(maxlen=512))  # (monotonic s, device ns)
+    dropped: int = 0
+    delivered: int = 0
+    controls: dict = field(default_factory=dict)
+    control_error: Optional[str] = None
+
+    def fps(self, now: float) -> Optional[float]:
+        """Frames per second by the camera's own clock over the last FPS_WINDOW_S."""
+        recent = [(t, d) for t, d in self.arrivals if now - t <= FPS_WINDOW_S]
+        if len(recent) < 3:
+            return None
+        span_ns = recent[-1][1] - recent[0][1]
+        return (len(recent) - 1) / (span_ns / 1e9) if span_ns > 0 else None
+
+    def health(self, now: float) -> str:
+        """ok, warn (fps more than 2 % off its target) or bad (no frames)."""
+        if self.frame_at is None or now - self.frame_at > STALE_S:
+            return "bad"
+        fps = self.fps(now)
+        if fps is not None and self.target_fps and abs(fps / self.target_fps - 1.0) > FPS_WARN:
+            return "warn"
+        return "ok"
+
+
+class ConsoleRig:
+    def __init__(self, cfg, session_factory: Optional[Callable] = None, record_fn: Optional[Callable] = None):
+        from rig.capture.record import record
+        from rig.capture.session import RigSession
+
+        self.cfg = cfg
+        self._session_factory = session_factory or RigSession
+        self._record = record_fn or record
+        self.views = {c.name: CameraView(c.name, c.role, float(c.fps)) for c in cfg.cameras}
+        if cfg.trigger is not None:
+            for v in self.views.values():
+                cam = cfg.camera(v.name)
+                if cam.trigger in ("hardware", "software"):
+                    v.target_fps = float(cfg.trigger.rate_hz)
+        self.storage = cfg.resolve(cfg.storage)
+        self.lock = threading.RLock()
+        self.session = None  # the session running now (the console's own, or a take's)
+        self.activity = "starting"  # starting, previewing, recording, stopping, idle
+        self.events: deque = deque(maxlen=EVENTS_KEPT)
+        self._closed = threading.Event()
+        self._yield = threading.Event()  # the preview session must let go of the cameras
+        self._released = threading.Event()
+        self._released.set()
+        self._thread: Optional[threading.Thread] = None
+        self.take: Optional[dict] = None  # the take running or last run
+        self._take_stop: Optional[threading.Event] = None
+        self._take_thread: Optional[threading.Thread] = None
+        self.summaries: dict[str, dict] = {}
+        self.notes = take_names.Notes(self.storage)
+
+    # --- life ------------------------------------------------------------------------------------
+    def start(self) -> "ConsoleRig":
+        self._thread = threading.Thread(target=self._preview_loop, name="console-previews", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._closed.set()
+        self.stop_take()
+        if self._take_thread is not None:
+            self._take_thread.join(30)
+        self._yield.set()
+        if self._thread is not None:
+            self._thread.join(15)
+
+    def event(self, kind: str, detail: str, level: str = "info") -> None:
+        with self.lock:
+            self.events.append({"time": time.time(), "kind": kind, "detail": detail, "level": level})
+
+    # --- the session tap (rig.capture.tap) ------------------------------------------------------------
+    def opened(self, session) -> None:
+        with self.lock:
+            self.session = session
+        self._refresh_controls()
+
+    def frame_set(self, fs, figures: dict) -> None:
+        now = time.monotonic()
+        for name, frame in fs.frames.items():
+            v = self.views.get(name)
+            if v is None or frame is None:
+                continue
+            v.frame, v.frame_at = frame, now
+            v.seq += 1
+            v.arrivals.append((now, frame.device_ts_ns))
+        if figures and self.take is not None:
+            self.take["figures"] = figures
+
+    def closed(self) -> None:
+        with self.lock:
+            session, self.session = self.session, None
+        if session is not None:
+            try:
+                stats = session.camera_stats()
+                for name, s in stats.items():
+                    if name in self.views:
+                        self.views[name].dropped += s.get("dropped", 0)
+            except Exception:
+                pass
+
+    # --- previews while nothing else runs --------------------------------------------------------------
+    def _preview_loop(self) -> None:
+        while not self._closed.is_set():
+            if self._yield.is_set():
+                self._released.set()
+                time.sleep(0.05)
+                continue
+            self._released.clear()
+            try:
+                self.activity = "starting" if self.activity != "recording" else self.activity
+                session = self._session_factory(self.cfg, on_event=self._on_session_event)
+                with session:
+                    self.opened(session)
+                    try:
+                        self.activity = "previewing"
+                        base = dict(self._dropped_base())
+                        for fs in session.framesets(until=lambda: self._yield.is_set() or self._closed.is_set()):
+                            self.frame_set(fs, {})
+                            self._live_drops(session, base)
+                    finally:
+                        self.closed()
+            except RigError as exc:
+                self.event("preview", f"the rig did not start: {exc}", "error")
+                self.activity = "idle"
+                self._closed.wait(RETRY_S)
+            except Exception as exc:  # a bug must not end the previews for good
+                log.exception("console previews")
+                self.event("preview", f"previews stopped: {exc}", "error")
+                self.activity = "idle"
+                self._closed.wait(RETRY_S)
+            finally:
+                self._released.set()
+
+    def _dropped_base(self) -> dict[str, int]:
+        return {n: v.dropped for n, v in self.views.items()}
+
+    def _live_drops(self, session, base: dict) -> None:
+        """Sets emitted without a camera's frame, counted as they happen (not only when the session ends)."""
+        stats = session.camera_stats()
+        for name, s in stats.items():
+            if name in self.views:
+                self.views[name].delivered = s.get("delivered", 0)
+                self.views[name].dropped_live = base.get(name, 0) + s.get("dropped", 0)
+
+    def _on_session_event(self, ev) -> None:
+        level = "error" if ev.kind in ("board_disconnected", "camera_lost", "board_error", "boot") else "info"
+        self.event(ev.kind, ev.detail, level)
+
+    def _take_the_rig(self, timeout: float = 20.0) -> None:
+        """Make the preview session let go of the cameras (a take opens its own)."""
+        self._yield.set()
+        if not self._released.wait(timeout):
+            self._yield.clear()
+            raise RigError("the previews did not let go of the cameras in time; try again")
+
+    # --- exposure and gain --------------------------------------------------------------------------
+    def _refresh_controls(self) -> None:
+        session = self.session
+        if session is None:
+            return
+        for name, cam in getattr(session, "cameras", {}).items():
+            if name in self.views:
+                try:
+                    self.views[name].controls = cam.controls()
+                except Exception as exc:
+                    self.views[name].controls = {"error": str(exc)}
+
+    def set_controls(self, camera: str, exposure_us=None, gain=None) -> dict[str, dict]:
+        """Set exposure and/or gain on one camera or on all ("*"): every value is checked against
+        every camera's range before any camera changes; then each camera's read-back (or why it did
+        not take it). ConfigError: a bad value (nothing changed)."""
+        if exposure_us is None and gain is None:
+            raise ConfigError("give exposure_us and/or gain")
+        with self.lock:
+            session = self.session
+            if session is None:
+                raise RigError("the rig is not running (no camera to set); wait for the previews")
+            cams = dict(getattr(session, "cameras", {}))
+            names = list(cams) if camera == "*" else [camera]
+            for n in names:
+                if n not in cams:
+                    raise ConfigError(f"no camera {n!r} running (cameras: {', '.join(cams) or 'none'})")
+            from rig.cameras.base import check_control
+
+            for n in names:  # all checked first
+                ranges = cams[n].controls().get("ranges", {})
+                for key, value in (("exposure_us", exposure_us), ("gain", gain)):
+                    if value is not None:
+                        check_control(n, key, value, tuple(ranges.get(key, (0.0, float("inf")))))
+            out = {}
+            for n in names:
+                v = self.views[n]
+                asked = {k: x for k, x in (("exposure_us", exposure_us), ("gain", gain)) if x is not None}
+                try:
+                    got = cams[n].set_controls(**asked)
+                except RigError as exc:
+                    v.control_error = str(exc)
+                    out[n] = {"ok": False, "error": str(exc), "controls": v.controls}
+                    continue
+                v.controls = got
+                missed = [k for k, x in asked.items() if got.get(k) is None or abs(float(got[k]) - float(x)) > max(1e-6, 0.01 * abs(float(x)))]
+                v.control_error = (f"the camera reports {', '.join(f'{k} {got.get(k)}' for k in missed)} "
+                                   f"(asked {', '.join(f'{k} {asked[k]:g}' for k in missed)})") if missed else None
+                out[n] = {"ok": not missed, "error": v.control_error, "controls": got}
+            self.event("controls", f"{camera}: " + ", ".join(f"{k} {x:g}" for k, x in (("exposure_us", exposure_us), ("gain", gain)) if x is not None))
+            return out
+
+    # --- takes --------------------------------------------------------------------------------------
+    def start_take(self, name: Optional[str] = None, notes: Optional[str] = None, seconds: Optional[float] = None) -> dict:
+        with self.lock:
+            if self.take is not None and self.take["state"] in ("starting", "recording", "stopping"):
+                raise ConfigError(f"take {self.take['take']} is running: stop it first")
+            name = take_names.check_new(self.storage, name) if name else take_names.next_name(self.storage)
+            if notes is not None:
+                self.notes.save(name, notes)
+            stop = threading.Event()
+            self._take_stop = stop
+            self.take = {"take": name, "state": "starting", "started": None, "figures": {}, "error": None,
+                         "seconds": seconds, "out": str(self.storage / name)}
+            self.activity = "recording"
+        self._take_thread = threading.Thread(target=self._run_take, args=(name, stop, seconds), name=f"console-take-{name}", daemon=True)
+        self._take_thread.start()
+        return dict(self.take)
+
+    def _run_take(self, name: str, stop: threading.Event, seconds: Optional[float]) -> None:
+        take = self.take
+        out = self.storage / name
+        try:
+            self._take_the_rig()  # the previews let go of the cameras; the take opens them itself
+            take["started"] = time.time()
+            take["started_monotonic"] = time.monotonic()
+            take["state"] = "recording"
+            self.event("record", f"take {name} started")
+            # rig record's own take: its disk check, its writer; until stopped (or `seconds`)
+            result = self._record(self.cfg, out, seconds=seconds if seconds else 24 * 3600.0, stop=stop, tap=self,
+                                  notes=lambda text: self.event("record", text))
+            summary = result.to_dict()
+            take["summary"] = summary
+            self.summaries[name] = summary
+            take["state"] = "done"
+            self.event("record", f"take {name}: {summary.get('sets')} sets, stopped by {summary.get('stopped_by')}")
+        except RigError as exc:
+            take["state"], take["error"] = "failed", str(exc)
+            self.event("record", f"take {name} failed: {exc}", "error")
+        except Exception as exc:
+            log.exception("console take")
+            take["state"], take["error"] = "failed", f"{type(exc).__name__}: {exc}"
+            self.event("record", f"take {name} failed: {exc}", "error")
+        finally:
+            take["ended_monotonic"] = time.monotonic()
+            self.notes.settle(name)
+            with self.lock:
+                self.activity = "previewing"
+            self._yield.clear()
+
+    def stop_take(self) -> Optional[dict]:
+        with self.lock:
+            if self.take is None or self.take["state"] not in ("starting", "recording"):
+                return None
+            self.take["state"] = "stopping"
+            if self._take_stop is not None:
+                self._take_stop.set()
+            return dict(self.take)
+
+    # --- what the page shows ------------------------------------------------------------------------
+    def status(self) -> dict:
+        now = time.monotonic()
+        cams = []
+        for v in self.views.values():
+            fps = v.fps(now)
+            controls = v.controls or {}
+            # the camera's own read-back (set_controls), else what its newest frame carries
+            reported = controls.get("exposure_us") if controls.get("live") else None
+            if reported is None and v.frame is not None:
+                reported = getattr(v.frame, "exposure_us", None)
+            cams.append({"name": v.name, "role": v.role, "target_fps": v.target_fps, "fps": round(fps, 2) if fps else None,
+                         "dropped": int(getattr(v, "dropped_live", v.dropped)),
+                         "age_s": round(now - v.frame_at, 3) if v.frame_at is not None else None,
+                         "health": v.health(now), "exposure_us": reported if reported is not None else controls.get("exposure_us"),
+                         "frame_exposure_us": getattr(v.frame, "exposure_us", None) if v.frame is not None else None,
+                         "gain": controls.get("gain"), "ranges": controls.get("ranges", {}), "live_controls": bool(controls.get("live")),
+                         "control_error": v.control_error, "seq": v.seq})
+        return {"rig": self.cfg.name, "activity": self.activity, "cameras": cams, "recording": self._recording(now),
+                "takes": take_names.listing(self.storage, self.summaries, running=self._running_take()), "events": list(self.events)[-20:],
+                "disk": self._disk()}
+
+    def _running_take(self) -> Optional[str]:
+        t = self.take
+        return t["take"] if t is not None and t["state"] in ("starting", "recording", "stopping") else None
+
+    def _recording(self, now: float) -> dict:
+        t = self.take
+        if t is None:
+            return {"state": "idle", "take": None, "sets": 0, "lost": 0}
+        f = t.get("figures") or {}
+        start = t.get("started_monotonic")
+        end = t.get("ended_monotonic") or now
+        elapsed = (end - start) if start else 0.0
+        sets = int(f.get("sets", 0))
+        lost = sets - int(f.get("complete", sets)) + int(f.get("skipped", 0))
+        rate = (f.get("bytes") or 0) / elapsed if elapsed > 0 else None
+        summary = t.get("summary") or {}
+        out = {"state": t["state"], "take": t["take"], "sets": sets if "sets" not in summary else summary["sets"],
+               "lost": lost, "elapsed_s": round(elapsed, 2), "write_mb_per_s": round(rate / 1e6, 2) if rate else None,
+               "disk_mb_per_s": summary.get("disk_mb_per_s"), "error": t.get("error"), "summary": summary or None}
+        disk = self._disk()
+        if rate and disk.get("free_bytes") is not None:
+            out["minutes_left"] = round(disk["free_bytes"] / rate / 60.0, 1)
+        return out
+
+    def _disk(self) -> dict:
+        from rig.storage.disk import nearest_existing_folder
+
+        try:
+            usage = shutil.disk_usage(nearest_existing_folder(Path(self.storage)))
+        except OSError:
+            return {"free_bytes": None}
+        return {"free_bytes": usage.free, "total_bytes": usage.total, "folder": str(self.storage)}

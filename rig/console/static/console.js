@@ -1,0 +1,219 @@
+// The venue console: tiles, controls and takes over the console's WebSocket and JSON API (rig/console/server.py).
+// State the tests read: document.body.dataset (connected, activity, recording, statusAt), each tile's
+// data-* (camera, health, fps, previews, exposure), window.rigConsole.
+"use strict";
+const $ = (s, el = document) => el.querySelector(s);
+const state = { status: null, tiles: {}, prefs: { rate: 5, width: 320, sizes: {}, overlay: [] }, zoomed: null, ws: null,
+                notesTimer: null, lastTake: null, statusCount: 0 };
+window.rigConsole = state;
+
+function api(method, path, body) {
+  return fetch(path, { method, headers: body ? { "Content-Type": "application/json" } : {}, body: body ? JSON.stringify(body) : undefined,
+                       credentials: "same-origin" })
+    .then(async r => { const data = await r.json().catch(() => ({ error: `HTTP ${r.status}` })); if (!r.ok) throw new Error(data.error || `HTTP ${r.status}`); return data; });
+}
+
+// After a change, the state it led to at once (not at the next status push).
+function refresh() { return api("GET", "api/status").then(onStatus).catch(() => {}); }
+
+function fmt(v, digits = 1, unit = "") { return v === null || v === undefined ? "–" : `${Number(v).toFixed(digits)}${unit}`; }
+
+function tile(cam) {
+  let t = state.tiles[cam.name];
+  if (t) return t;
+  const el = document.createElement("div");
+  el.className = "tile";
+  el.dataset.camera = cam.name;
+  el.dataset.previews = "0";
+  el.innerHTML = `<div class="head"><b class="name"></b> <span class="role badge"></span></div>
+    <img alt="">
+    <canvas class="hist" width="128" height="32"></canvas>
+    <div class="figures"><span class="fps"></span><span class="dropped"></span><span class="age"></span><span class="clipped"></span></div>
+    <div class="controls">exposure <input type="number" step="any" class="exposure" data-control="exposure"> µs
+      gain <input type="number" step="any" class="gain" data-control="gain"> dB
+      <button data-action="set-controls">set</button>
+      <label><input type="checkbox" class="overlay" data-control="overlay"> clipped</label></div>
+    <div class="reported hint"></div><div class="control-error error"></div>`;
+  $(".name", el).textContent = cam.name;
+  $(".role", el).textContent = cam.role;
+  $("#tiles").appendChild(el);
+  t = { el, url: null, stats: null, previews: 0 };
+  state.tiles[cam.name] = t;
+  $("img", el).addEventListener("click", () => zoom(cam.name));
+  $("button", el).addEventListener("click", () => setControls(cam.name, $(".exposure", el).value, $(".gain", el).value, $(".control-error", el)));
+  $(".overlay", el).addEventListener("change", e => {
+    const o = new Set(state.prefs.overlay); e.target.checked ? o.add(cam.name) : o.delete(cam.name);
+    state.prefs.overlay = [...o]; sendPrefs();
+  });
+  return t;
+}
+
+function parseNumber(text, what) {
+  if (text === "" || text === null) return null;
+  const v = Number(text);
+  if (!Number.isFinite(v)) throw new Error(`${what} must be a number, got ${JSON.stringify(text)}`);
+  return v;
+}
+
+function setControls(camera, exposure, gain, errorEl) {
+  errorEl.textContent = "";
+  let body;
+  try { body = { camera, exposure_us: parseNumber(exposure, "exposure"), gain: parseNumber(gain, "gain") }; }
+  catch (e) { errorEl.textContent = e.message; return Promise.resolve(); }
+  if (body.exposure_us === null) delete body.exposure_us;
+  if (body.gain === null) delete body.gain;
+  document.body.dataset.controlsPending = "1";
+  return api("POST", "api/controls", body).then(res => {
+    const failed = Object.entries(res).filter(([, r]) => !r.ok).map(([n, r]) => `${n}: ${r.error}`);
+    errorEl.textContent = failed.join("; ");
+  }).catch(e => { errorEl.textContent = e.message; }).finally(() => { document.body.dataset.controlsPending = "0"; refresh(); });
+}
+
+function drawHist(canvas, hist) {
+  const g = canvas.getContext("2d"), w = canvas.width, h = canvas.height;
+  g.clearRect(0, 0, w, h);
+  if (!hist) return;
+  const top = Math.max(...hist, 1e-6);
+  g.fillStyle = "#9e9e9e";
+  hist.forEach((v, i) => { const bh = (v / top) * h; g.fillRect(i * w / hist.length, h - bh, w / hist.length - 1, bh); });
+  g.fillStyle = "#ef5350";
+  g.fillRect(w - w / hist.length, h - (hist[hist.length - 1] / top) * h, w / hist.length, (hist[hist.length - 1] / top) * h);
+}
+
+function zoom(name) {
+  state.zoomed = name;
+  const z = $("#zoom");
+  z.hidden = false;
+  z.dataset.camera = name;
+  state.prefs.sizes = { [name]: 960 };
+  sendPrefs();
+}
+$("#zoom").addEventListener("click", () => { $("#zoom").hidden = true; state.zoomed = null; state.prefs.sizes = {}; sendPrefs(); });
+
+function onPreview(buf) {
+  const view = new DataView(buf);
+  const n = view.getUint32(0);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
+  const jpeg = new Blob([new Uint8Array(buf, 4 + n)], { type: "image/jpeg" });
+  const t = state.tiles[header.camera];
+  if (!t) return ack(header.camera);
+  const url = URL.createObjectURL(jpeg);
+  const img = $("img", t.el);
+  img.onload = () => { if (t.url) URL.revokeObjectURL(t.url); t.url = url; t.previews++; t.el.dataset.previews = String(t.previews);
+                       t.el.dataset.seq = String(header.seq); ack(header.camera); };
+  img.onerror = () => ack(header.camera);
+  img.src = url;
+  t.stats = header;
+  drawHist($("canvas", t.el), header.histogram);
+  $(".clipped", t.el).textContent = `clipped ${fmt(100 * header.clipped, 1, " %")}`;
+  if (state.zoomed === header.camera) {
+    $("#zoom img").src = url;
+    drawHist($("#zoom canvas"), header.histogram);
+    $("#zoom p").textContent = `${header.camera}: clipped ${fmt(100 * header.clipped, 2, " %")}`;
+  }
+}
+
+function ack(camera) { if (state.ws && state.ws.readyState === 1) state.ws.send(JSON.stringify({ type: "ack", camera })); }
+function sendPrefs() { if (state.ws && state.ws.readyState === 1) state.ws.send(JSON.stringify({ type: "prefs", ...state.prefs })); }
+
+function onStatus(s) {
+  state.status = s;
+  state.statusCount++;
+  document.body.dataset.statusAt = String(performance.now());
+  document.body.dataset.activity = s.activity;
+  if (document.body.dataset.recording !== s.recording.state) document.body.dataset.recordingChangedAt = String(performance.now());
+  document.body.dataset.recording = s.recording.state;
+  document.body.dataset.role = s.role;
+  $("#rig-name").textContent = s.rig;
+  $("#activity").textContent = s.activity;
+  $("#role").textContent = s.role;
+  for (const cam of s.cameras) {
+    const t = tile(cam), el = t.el;
+    el.dataset.health = cam.health;
+    el.dataset.fps = cam.fps === null ? "" : String(cam.fps);
+    const exposure = cam.exposure_us === null ? "" : String(cam.exposure_us), gain = cam.gain === null ? "" : String(cam.gain);
+    if (el.dataset.exposure !== exposure || el.dataset.gain !== gain) el.dataset.changedAt = String(performance.now());
+    el.dataset.exposure = exposure;
+    el.dataset.gain = gain;
+    $(".fps", el).textContent = `${fmt(cam.fps, 1)} / ${fmt(cam.target_fps, 0)} fps`;
+    $(".dropped", el).textContent = `dropped ${cam.dropped}`;
+    $(".age", el).textContent = `last ${cam.age_s === null ? "never" : fmt(1000 * cam.age_s, 0, " ms")} ago`;
+    const r = cam.ranges || {};
+    $(".reported", el).textContent = `camera reports: exposure ${fmt(cam.exposure_us, 0, " µs")}, gain ${fmt(cam.gain, 1, " dB")}`
+      + (r.exposure_us ? ` (exposure ${r.exposure_us[0]}–${Math.round(r.exposure_us[1])} µs)` : "") + (cam.live_controls ? "" : " · set at open only");
+    if (cam.control_error) $(".control-error", el).textContent = cam.control_error;
+  }
+  const rec = s.recording, running = ["starting", "recording", "stopping"].includes(rec.state);
+  const operator = s.role === "operator";
+  document.querySelectorAll("[data-action]").forEach(b => {
+    const a = b.dataset.action;
+    if (a === "stop") b.disabled = !operator || rec.state !== "recording";
+    else if (["record", "set-controls", "set-all"].includes(a)) b.disabled = !operator || running || s.activity === "starting";
+  });
+  $("#take-name").disabled = running || !operator;
+  $("#take-timer").textContent = running || rec.state === "done" ? clock(rec.elapsed_s) : "0:00";
+  $("#record-error").textContent = rec.error || "";
+  const figures = running || rec.summary ? [["take", rec.take], ["state", rec.state], ["sets", rec.sets], ["lost", rec.lost],
+    ["write", fmt(rec.write_mb_per_s, 1, " MB/s")], ["disk", fmt(rec.disk_mb_per_s, 0, " MB/s")],
+    ["free", s.disk.free_bytes === null ? "–" : fmt(s.disk.free_bytes / 1e9, 1, " GB")], ["minutes left", fmt(rec.minutes_left, 0)]] : [];
+  $("#record-figures tbody").innerHTML = figures.map(([k, v]) => `<tr><td>${k}</td><td data-figure="${k}">${escape(v)}</td></tr>`).join("");
+  $("#takes tbody").innerHTML = s.takes.map(t => {
+    const v = t.validation || {};
+    const st = v.state || (v.readable ? "valid" : `invalid: ${(v.errors || []).join("; ")}`);
+    return `<tr data-take="${escape(t.take)}" data-valid="${v.readable ? "true" : "false"}"><td>${escape(t.take)}</td><td>${escape(st)}</td>`
+      + `<td>${v.sets ?? ""}</td><td>${v.duration_s ?? ""}</td></tr>`;
+  }).join("");
+  $("#events").innerHTML = s.events.slice().reverse().map(e => `<li class="${e.level}">${new Date(1000 * e.time).toLocaleTimeString()} ${escape(e.kind)}: ${escape(e.detail)}</li>`).join("");
+  const faults = s.cameras.filter(c => c.health === "bad").map(c => `${c.name}: no frames`);
+  if (s.activity === "idle") faults.push("the rig is not running (see the events)");
+  $("#banners").innerHTML = faults.map(f => `<div>${escape(f)}</div>`).join("");
+  if (!running && rec.take && rec.take !== state.lastTake && rec.state !== "idle") {
+    state.lastTake = rec.take;
+    api("GET", `api/take-name?after=${encodeURIComponent(rec.take)}`).then(r => { if (!$("#take-name").matches(":focus")) $("#take-name").value = r.take; });
+  }
+}
+
+function escape(v) { return String(v ?? "").replace(/[&<>"]/g, c => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c])); }
+function clock(s) { s = Math.max(0, s || 0); return `${Math.floor(s / 60)}:${String(Math.floor(s % 60)).padStart(2, "0")}`; }
+
+function connect() {
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${location.pathname.replace(/[^/]*$/, "")}ws`);
+  ws.binaryType = "arraybuffer";
+  state.ws = ws;
+  ws.onopen = () => { document.body.dataset.connected = "true"; sendPrefs(); };
+  ws.onmessage = ev => {
+    if (typeof ev.data !== "string") return onPreview(ev.data);
+    const m = JSON.parse(ev.data);
+    if (m.type === "status") onStatus(m);
+    else if (m.type === "error") console.warn("console:", m.error);
+  };
+  ws.onclose = () => { document.body.dataset.connected = "false"; setTimeout(connect, 1000); };
+}
+
+// When the last control was clicked (the tests measure click-to-state on the page's own clock).
+document.addEventListener("click", e => { if (e.target.closest("[data-action]")) document.body.dataset.clickAt = String(performance.now()); }, true);
+$("#preview-rate").addEventListener("change", e => { state.prefs.rate = Number(e.target.value); sendPrefs(); });
+document.querySelector('[data-action="set-all"]').addEventListener("click", () =>
+  setControls("*", $("#all-exposure").value, $("#all-gain").value, $("#all-error")));
+document.querySelector('[data-action="record"]').addEventListener("click", () => {
+  $("#record-error").textContent = "";
+  const take = $("#take-name").value.trim();
+  api("POST", "api/record/start", { take: take || undefined, notes: $("#take-notes").value })
+    .then(t => { $("#take-name").value = t.take; return refresh(); }).catch(e => { $("#record-error").textContent = e.message; });
+});
+document.querySelector('[data-action="stop"]').addEventListener("click", () =>
+  api("POST", "api/record/stop").then(refresh).catch(e => { $("#record-error").textContent = e.message; }));
+$("#take-notes").addEventListener("input", () => {
+  clearTimeout(state.notesTimer);
+  $("#notes-saved").textContent = "…";
+  state.notesTimer = setTimeout(saveNotes, 300);
+});
+function saveNotes() {
+  const take = $("#take-name").value.trim();
+  if (!take) { $("#notes-saved").textContent = "give the take a name to keep its notes"; return; }
+  api("PUT", "api/notes", { take, text: $("#take-notes").value })
+    .then(() => { $("#notes-saved").textContent = "saved"; document.body.dataset.notesSaved = String(Date.now()); })
+    .catch(e => { $("#notes-saved").textContent = e.message; });
+}
+api("GET", "api/take-name").then(r => { if (!$("#take-name").value) $("#take-name").value = r.take; }).catch(() => {});
+connect();
