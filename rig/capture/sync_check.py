@@ -59,8 +59,12 @@ def _p(values, q) -> Optional[float]:
 
 
 def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str], None]] = None,
-               session_options: Optional[dict] = None, limits: Optional[dict] = None) -> dict:
+               session_options: Optional[dict] = None, limits: Optional[dict] = None, tap=None) -> dict:
+    """`tap`: an onlooker (rig.capture.tap: the console's previews), told of the session and of each set."""
     from rig.capture.session import RigSession
+    from rig.capture.tap import guard, tapped
+
+    tap = guard(tap)
 
     if not seconds > 0 or seconds == float("inf"):
         raise ConfigError(f"--seconds must be positive, got {seconds}")
@@ -74,7 +78,7 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
     exposed: dict[str, set] = {c.name: set() for c in cfg.cameras}
     sets = 0
     t0 = time.monotonic()
-    with RigSession(cfg, **(session_options or {})) as session:
+    with RigSession(cfg, **(session_options or {})) as session, tapped(tap, session):
         # cameras that know which pulse each of their frames truly exposed (simulated ones do)
         truth_cams = {name for name, cam in session.cameras.items() if hasattr(cam, "truth_pulse")}
         rate = cfg.trigger.rate_hz if cfg.trigger else cfg.camera(session.grouper.reference).fps
@@ -91,6 +95,8 @@ def sync_check(cfg: RigConfig, seconds: float, progress: Optional[Callable[[str]
 
         for fs in session.framesets(until=over):
             sets += 1
+            if tap is not None:  # before the images are let go below
+                tap.frame_set(fs, {"sets": sets, "pulses": fs.index + 1, "seconds": round(time.monotonic() - started, 2)})
             bad = False
             for name, frame in fs.frames.items():
                 if frame is None:

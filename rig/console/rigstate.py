@@ -48,6 +48,7 @@ class CameraView:
     role: str
     target_fps: float
     frame: Any = None  # the newest sync.frames.Frame
+    image: Any = None  # its image
     frame_at: Optional[float] = None  # host monotonic seconds it arrived
     seq: int = 0  # counts frames seen (a preview is sent when it moved)
     arrivals: deque = field(default_factory=lambda: deque(maxlen=512))  # (monotonic s, device ns)
@@ -102,6 +103,7 @@ class ConsoleRig:
         self._take_stop: Optional[threading.Event] = None
         self._take_thread: Optional[threading.Thread] = None
         self.summaries: dict[str, dict] = {}
+        self.check: Optional[dict] = None  # the sync check running or last run
         self.notes = take_names.Notes(self.storage)
 
     # --- life ------------------------------------------------------------------------------------
@@ -136,6 +138,7 @@ class ConsoleRig:
             if v is None or frame is None:
                 continue
             v.frame, v.frame_at = frame, now
+            v.image = frame.image  # a reference (the work may let go of frame.image after the tap)
             v.seq += 1
             v.arrivals.append((now, frame.device_ts_ns))
         if figures and self.take is not None:
@@ -261,10 +264,16 @@ class ConsoleRig:
             return out
 
     # --- takes --------------------------------------------------------------------------------------
+    def _check_free(self, what: str) -> None:
+        """One piece of work owns the cameras at a time: ConfigError naming the one running."""
+        if self.take is not None and self.take["state"] in ("starting", "recording", "stopping"):
+            raise ConfigError(f"{what}: take {self.take['take']} is running; stop it first")
+        if self.check is not None and self.check["state"] in ("starting", "running"):
+            raise ConfigError(f"{what}: a sync check is running; wait for its verdict")
+
     def start_take(self, name: Optional[str] = None, notes: Optional[str] = None, seconds: Optional[float] = None) -> dict:
         with self.lock:
-            if self.take is not None and self.take["state"] in ("starting", "recording", "stopping"):
-                raise ConfigError(f"take {self.take['take']} is running: stop it first")
+            self._check_free("record")
             name = take_names.check_new(self.storage, name) if name else take_names.next_name(self.storage)
             if notes is not None:
                 self.notes.save(name, notes)
@@ -317,6 +326,70 @@ class ConsoleRig:
                 self._take_stop.set()
             return dict(self.take)
 
+    # --- sync ---------------------------------------------------------------------------------------
+    MAX_CHECK_S = 600.0
+
+    def start_sync_check(self, seconds: float = 10.0) -> dict:
+        """`rig sync check`'s own run (rig.capture.sync_check) for `seconds`, in a thread; its verdict in status()."""
+        import math
+
+        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not math.isfinite(seconds) or not 0 < seconds <= self.MAX_CHECK_S:
+            raise ConfigError(f"sync check: seconds must be a number above 0 and at most {self.MAX_CHECK_S:g}, got {seconds!r}")
+        with self.lock:
+            self._check_free("sync check")
+            self.check = {"state": "starting", "seconds": float(seconds), "verdict": None, "failures": [], "report": None, "error": None,
+                          "figures": {}}
+            self.activity = "sync check"
+        threading.Thread(target=self._run_check, args=(float(seconds),), name="console-sync-check", daemon=True).start()
+        return dict(self.check)
+
+    def _run_check(self, seconds: float) -> None:
+        from rig.capture.sync_check import sync_check
+
+        check = self.check
+        try:
+            self._take_the_rig()
+            check["state"] = "running"
+            self.event("sync", f"sync check for {seconds:g} s")
+            report = sync_check(self.cfg, seconds, tap=_CheckTap(self, check))
+            check.update(state="done", verdict=report["verdict"], failures=report["failures"], report=_slim_report(report))
+            self.event("sync", f"sync check: {report['verdict']}" + (f" ({'; '.join(report['failures'])})" if report["failures"] else ""),
+                       "info" if report["verdict"] == "pass" else "error")
+        except RigError as exc:
+            check.update(state="failed", error=str(exc))
+            self.event("sync", f"sync check failed: {exc}", "error")
+        except Exception as exc:
+            log.exception("console sync check")
+            check.update(state="failed", error=f"{type(exc).__name__}: {exc}")
+        finally:
+            with self.lock:
+                self.activity = "previewing"
+            self._yield.clear()
+
+    def _sync(self) -> dict:
+        """The running session's board and grouping figures: rate, pulses, lost pulses, the clock
+        model's residual, the exposure skew across cameras (device clocks against the fitted pulse
+        times, as rig sync check measures it) and each camera's drops."""
+        session = self.session
+        out: dict = {"rate_hz": self.cfg.trigger.rate_hz if self.cfg.trigger else None, "board": None}
+        if session is not None:
+            try:
+                g = session.grouper.stats() if session.grouper is not None else {}
+                out["skew_us"] = g.get("skew_us")
+                out["sets"] = g.get("sets")
+                out["cameras"] = {n: {k: c.get(k) for k in ("drops", "lost_frames", "missed_triggers")} for n, c in g.get("cameras", {}).items()}
+                if session.board is not None:
+                    r = session.board.report()
+                    clock = r.get("clock") or {}
+                    out["board"] = {"connected": r.get("connected"), "pulses": r.get("pulses"), "lost_pulses": r.get("missing_pulse_reports"),
+                                    "clock_residual_p99_us": clock.get("fit_residual_p99_us"), "drift_ppm": clock.get("drift_ppm"),
+                                    "last_error": r.get("last_error")}
+            except Exception as exc:  # a figure the session could not give is not a fault of the page
+                out["error"] = str(exc)
+        c = self.check
+        out["check"] = None if c is None else {k: c.get(k) for k in ("state", "seconds", "verdict", "failures", "error", "report", "figures")}
+        return out
+
     # --- what the page shows ------------------------------------------------------------------------
     def status(self) -> dict:
         now = time.monotonic()
@@ -337,7 +410,7 @@ class ConsoleRig:
                          "control_error": v.control_error, "seq": v.seq})
         return {"rig": self.cfg.name, "activity": self.activity, "cameras": cams, "recording": self._recording(now),
                 "takes": take_names.listing(self.storage, self.summaries, running=self._running_take()), "events": list(self.events)[-20:],
-                "disk": self._disk()}
+                "disk": self._disk(), "sync": self._sync()}
 
     def _running_take(self) -> Optional[str]:
         t = self.take
@@ -371,3 +444,27 @@ class ConsoleRig:
         except OSError:
             return {"free_bytes": None}
         return {"free_bytes": usage.free, "total_bytes": usage.total, "folder": str(self.storage)}
+
+
+class _CheckTap:
+    """The console's tap on a sync check: the previews, and the check's own running figures."""
+
+    def __init__(self, rig: ConsoleRig, check: dict):
+        self.rig, self.check = rig, check
+
+    def opened(self, session) -> None:
+        self.rig.opened(session)
+
+    def frame_set(self, fs, figures: dict) -> None:
+        self.rig.frame_set(fs, {})
+        self.check["figures"] = figures
+
+    def closed(self) -> None:
+        self.rig.closed()
+
+
+def _slim_report(report: dict) -> dict:
+    """The figures of a sync check's report the page shows (JSON-able, small)."""
+    keys = ("sets", "complete_sets", "pulses", "skew_us", "clock_residual_us", "clock_residual_source", "drift_ppm", "drops_detected",
+            "mismatched_sets", "seconds", "errors")
+    return {k: report.get(k) for k in keys}

@@ -9,6 +9,7 @@ Routes (access: rig/console/access.py; every state change needs the operator's r
     POST /api/controls           {"camera": NAME | "*", "exposure_us": x, "gain": y}: set live, read back
     POST /api/record/start       {"take": NAME (optional), "notes": TEXT (optional)}
     POST /api/record/stop
+    POST /api/sync-check         {"seconds": N}: rig sync check's own run; its verdict in status's sync.check
     PUT  /api/notes              {"take": NAME, "text": TEXT}: saved as typed
     GET  /api/take-name          the name offered next (?after=LAST counts it up)
     WS   /ws                     status out (JSON, every STATUS_S); previews out (binary: 4-byte header
@@ -172,6 +173,16 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
     async def record_stop():
         return await guarded(lambda: rig.stop_take() or {"state": "idle"})
 
+    @app.post("/api/sync-check")
+    async def sync_check(request: Request):
+        try:
+            data = await _body(request)
+            _only(data, {"seconds"})
+            seconds = _number_or_none(data, "seconds")
+        except ConfigError as exc:
+            return _bad(str(exc))
+        return await guarded(rig.start_sync_check, 10.0 if seconds is None else seconds)
+
     @app.put("/api/notes")
     async def notes(request: Request):
         try:
@@ -291,12 +302,12 @@ class _Viewer:
             now = time.monotonic()
             sent = False
             for name, view in list(self.rig.views.items()):
-                frame, seq = view.frame, view.seq
-                if frame is None or name in self.waiting or seq == self.sent_seq.get(name):
+                image, seq = view.image, view.seq
+                if image is None or name in self.waiting or seq == self.sent_seq.get(name):
                     continue
                 if now - self.sent_at.get(name, 0.0) < period:
                     continue
-                jpeg, stats = await self.call(previews.preview, frame.image, self.sizes.get(name, self.width), name in self.overlay)
+                jpeg, stats = await self.call(previews.preview, image, self.sizes.get(name, self.width), name in self.overlay)
                 header = json.dumps({"camera": name, "seq": seq, **stats}).encode()
                 self.waiting.add(name)
                 self.sent_seq[name], self.sent_at[name] = seq, now

@@ -229,3 +229,26 @@ def test_a_foreign_origin_a_missing_token_and_a_viewer_token_are_refused(rig_con
                 pass
     finally:
         server.stop()
+
+
+def test_a_sync_check_from_the_page_gives_its_verdict_and_the_board_figures_show(console, driver):
+    rig, server = console
+    driver.get(server.url)
+    wait_until(lambda: driver.execute_script("return document.body.dataset.activity") == "previewing", 60, "previews")
+    wait_until(lambda: (rig.status()["sync"]["board"] or {}).get("pulses"), 20, "the board's pulses")
+    shown = lambda: driver.execute_script("const e = document.querySelector('[data-figure=\"pulses\"]'); return e ? e.textContent : ''")
+    wait_until(lambda: shown().isdigit() and int(shown()) > 0, 5, "the pulses on the page")
+    box = driver.find_element("id", "sync-seconds")
+    box.clear()
+    box.send_keys("3")
+    driver.find_element("css selector", '[data-action="sync-check"]').click()
+    wait_until(lambda: driver.execute_script("return document.body.dataset.syncCheck") in ("starting", "running", "done"), 2, "the check's state")
+    assert driver.find_element("css selector", '[data-action="record"]').get_attribute("disabled")  # one piece of work at a time
+    verdict = wait_until(lambda: driver.execute_script("return document.body.dataset.syncVerdict"), 90, "the verdict")
+    assert verdict == "pass", rig.status()["sync"]["check"]
+    report = rig.status()["sync"]["check"]["report"]
+    assert report["sets"] >= 25 and report["skew_us"]["p99"] is not None
+    # previews went on during the check and come back after it
+    wait_until(lambda: driver.execute_script("return document.body.dataset.activity") == "previewing", 60, "previews again")
+    status, reply = _post(server.url + "api/sync-check", {"seconds": -1})
+    assert status == 400 and "seconds" in reply["error"]

@@ -148,7 +148,8 @@ function onStatus(s) {
   document.querySelectorAll("[data-action]").forEach(b => {
     const a = b.dataset.action;
     if (a === "stop") b.disabled = !operator || rec.state !== "recording";
-    else if (["record", "set-controls", "set-all"].includes(a)) b.disabled = !operator || running || s.activity === "starting";
+    else if (["record", "sync-check"].includes(a)) b.disabled = !operator || s.activity !== "previewing";
+    else if (["set-controls", "set-all"].includes(a)) b.disabled = !operator || s.activity === "starting" || s.activity === "idle";
   });
   $("#take-name").disabled = running || !operator;
   $("#take-timer").textContent = running || rec.state === "done" ? clock(rec.elapsed_s) : "0:00";
@@ -164,6 +165,7 @@ function onStatus(s) {
       + `<td>${v.sets ?? ""}</td><td>${v.duration_s ?? ""}</td></tr>`;
   }).join("");
   $("#events").innerHTML = s.events.slice().reverse().map(e => `<li class="${e.level}">${new Date(1000 * e.time).toLocaleTimeString()} ${escape(e.kind)}: ${escape(e.detail)}</li>`).join("");
+  showSync(s.sync);
   const faults = s.cameras.filter(c => c.health === "bad").map(c => `${c.name}: no frames`);
   if (s.activity === "idle") faults.push("the rig is not running (see the events)");
   $("#banners").innerHTML = faults.map(f => `<div>${escape(f)}</div>`).join("");
@@ -171,6 +173,22 @@ function onStatus(s) {
     state.lastTake = rec.take;
     api("GET", `api/take-name?after=${encodeURIComponent(rec.take)}`).then(r => { if (!$("#take-name").matches(":focus")) $("#take-name").value = r.take; });
   }
+}
+
+function showSync(y) {
+  const b = y.board || {}, k = y.skew_us || {};
+  const rows = [["rate", fmt(y.rate_hz, 1, " Hz")], ["pulses", b.pulses ?? "–"], ["lost pulses", b.lost_pulses ?? "–"],
+    ["clock residual p99", fmt(b.clock_residual_p99_us, 1, " µs")], ["exposure skew p50 / p99", `${fmt(k.p50, 1)} / ${fmt(k.p99, 1)} µs`],
+    ["board", b.connected === undefined ? "none" : (b.connected ? "connected" : `lost: ${b.last_error || ""}`)]];
+  for (const [name, c] of Object.entries(y.cameras || {})) rows.push([`${name} drops`, `${c.drops ?? 0} (missed triggers ${c.missed_triggers ?? 0})`]);
+  $("#sync-figures tbody").innerHTML = rows.map(([n, v]) => `<tr><td>${escape(n)}</td><td data-figure="${escape(n)}">${escape(v)}</td></tr>`).join("");
+  const c = y.check;
+  const verdict = !c ? "" : (c.state === "done" ? c.verdict : c.state === "failed" ? "failed" : `${c.state}…`);
+  $("#sync-verdict").textContent = verdict;
+  document.body.dataset.syncCheck = c ? c.state : "";
+  document.body.dataset.syncVerdict = c && c.verdict ? c.verdict : "";
+  $("#sync-error").textContent = c && c.error ? c.error : "";
+  $("#sync-failures").innerHTML = c && c.failures ? c.failures.map(f => `<li>${escape(f)}</li>`).join("") : "";
 }
 
 function escape(v) { return String(v ?? "").replace(/[&<>"]/g, c => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c])); }
@@ -203,6 +221,12 @@ document.querySelector('[data-action="record"]').addEventListener("click", () =>
 });
 document.querySelector('[data-action="stop"]').addEventListener("click", () =>
   api("POST", "api/record/stop").then(refresh).catch(e => { $("#record-error").textContent = e.message; }));
+document.querySelector('[data-action="sync-check"]').addEventListener("click", () => {
+  $("#sync-error").textContent = "";
+  let seconds;
+  try { seconds = parseNumber($("#sync-seconds").value, "seconds"); } catch (e) { $("#sync-error").textContent = e.message; return; }
+  api("POST", "api/sync-check", seconds === null ? {} : { seconds }).then(refresh).catch(e => { $("#sync-error").textContent = e.message; });
+});
 $("#take-notes").addEventListener("input", () => {
   clearTimeout(state.notesTimer);
   $("#notes-saved").textContent = "…";
