@@ -104,6 +104,7 @@ class ConsoleRig:
         self._take_thread: Optional[threading.Thread] = None
         self.summaries: dict[str, dict] = {}
         self.check: Optional[dict] = None  # the sync check running or last run
+        self.doctor: Optional[dict] = None  # the host checks running or last run
         self.notes = take_names.Notes(self.storage)
 
     # --- life ------------------------------------------------------------------------------------
@@ -390,6 +391,69 @@ class ConsoleRig:
         out["check"] = None if c is None else {k: c.get(k) for k in ("state", "seconds", "verdict", "failures", "error", "report", "figures")}
         return out
 
+    # --- health -------------------------------------------------------------------------------------
+    DOCTOR_TEST_BYTES = 64 << 20  # the disk write test of `rig doctor` here: enough to pass the page cache on a small rig
+
+    def start_doctor(self) -> dict:
+        """`rig doctor`'s checks (rig.doctor.run_checks) in a thread; their lines in status()["health"]."""
+        with self.lock:
+            self._check_free("doctor")
+            if self.doctor is not None and self.doctor["state"] == "running":
+                raise ConfigError("doctor: the checks are running")
+            self.doctor = {"state": "running", "checks": None, "verdict": None, "error": None}
+        threading.Thread(target=self._run_doctor, name="console-doctor", daemon=True).start()
+        return dict(self.doctor)
+
+    def _run_doctor(self) -> None:
+        from rig.doctor import run_checks
+        from rig.doctor.check import worst
+        from rig.doctor.host import Host
+
+        d = self.doctor
+        try:
+            Path(self.storage).mkdir(parents=True, exist_ok=True)
+            checks = run_checks(self.cfg, Host("/"), output=Path(self.storage), minutes=60.0, test_bytes=self.DOCTOR_TEST_BYTES)
+            d.update(state="done", checks=[c.to_json() for c in checks], verdict=worst(checks))
+            self.event("doctor", f"host checks: {d['verdict']}", "info" if d["verdict"] == "ok" else "error")
+        except (RigError, OSError) as exc:
+            d.update(state="failed", error=str(exc))
+        except Exception as exc:
+            log.exception("console doctor")
+            d.update(state="failed", error=f"{type(exc).__name__}: {exc}")
+
+    FAULT_EVENTS = ("camera_lost", "camera_back", "board_disconnected", "board_connected", "board_error", "boot")
+    RECENT_S = 120.0
+    DISK_LOW_MINUTES = 10.0
+
+    def faults(self, cams: list[dict], now: float) -> list[dict]:
+        """The banners: cameras with no frames, a lost board, a disk with under DISK_LOW_MINUTES of the
+        rig's data left, and what happened lately (a camera or daemon that went and came back)."""
+        out = [{"kind": "camera", "level": "error", "detail": f"{c['name']}: no frames" + (f" for {c['age_s']:.0f} s" if c["age_s"] else "")}
+               for c in cams if c["health"] == "bad" and self.activity not in ("starting", "idle")]
+        session = self.session
+        board = getattr(session, "board", None) if session is not None else None
+        if board is not None and not getattr(board, "connected", True):
+            out.append({"kind": "board", "level": "error", "detail": f"trigger board unplugged ({getattr(board, 'last_error', '') or 'no reply'})"})
+        disk = self._disk()
+        if disk.get("free_bytes") is not None:
+            from rig.storage.disk import rig_data_rate
+
+            try:
+                rate = rig_data_rate(self.cfg)
+            except Exception:
+                rate = 0.0
+            if rate > 0 and disk["free_bytes"] / rate / 60.0 < self.DISK_LOW_MINUTES:
+                out.append({"kind": "disk", "level": "error",
+                            "detail": f"disk nearly full: {disk['free_bytes'] / 1e9:.1f} GB free, {disk['free_bytes'] / rate / 60.0:.1f} minutes of the rig's data"})
+        wall = time.time()
+        for e in list(self.events):
+            if e["kind"] in self.FAULT_EVENTS and wall - e["time"] < self.RECENT_S:
+                out.append({"kind": e["kind"], "level": "warn" if e["kind"] in ("camera_back", "board_connected") else "error",
+                            "detail": e["detail"], "time": e["time"]})
+        if self.activity == "idle":
+            out.append({"kind": "rig", "level": "error", "detail": "the rig is not running (see the events)"})
+        return out
+
     # --- what the page shows ------------------------------------------------------------------------
     def status(self) -> dict:
         now = time.monotonic()
@@ -410,7 +474,7 @@ class ConsoleRig:
                          "control_error": v.control_error, "seq": v.seq})
         return {"rig": self.cfg.name, "activity": self.activity, "cameras": cams, "recording": self._recording(now),
                 "takes": take_names.listing(self.storage, self.summaries, running=self._running_take()), "events": list(self.events)[-20:],
-                "disk": self._disk(), "sync": self._sync()}
+                "disk": self._disk(), "sync": self._sync(), "faults": self.faults(cams, now), "health": self.doctor}
 
     def _running_take(self) -> Optional[str]:
         t = self.take

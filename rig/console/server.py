@@ -9,6 +9,7 @@ Routes (access: rig/console/access.py; every state change needs the operator's r
     POST /api/controls           {"camera": NAME | "*", "exposure_us": x, "gain": y}: set live, read back
     POST /api/record/start       {"take": NAME (optional), "notes": TEXT (optional)}
     POST /api/record/stop
+    POST /api/doctor             rig doctor's checks; their lines in status's health
     POST /api/sync-check         {"seconds": N}: rig sync check's own run; its verdict in status's sync.check
     PUT  /api/notes              {"take": NAME, "text": TEXT}: saved as typed
     GET  /api/take-name          the name offered next (?after=LAST counts it up)
@@ -182,6 +183,10 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
         except ConfigError as exc:
             return _bad(str(exc))
         return await guarded(rig.start_sync_check, 10.0 if seconds is None else seconds)
+
+    @app.post("/api/doctor")
+    async def doctor():
+        return await guarded(rig.start_doctor)
 
     @app.put("/api/notes")
     async def notes(request: Request):

@@ -44,6 +44,7 @@ def rig_config(tmp_path_factory):
     data = sim_rig_config(4, width=320, height=180, fps=10.0)
     data["rig"]["storage"] = str(root / "takes")
     data["sim"]["loop_frames"] = 10
+    data["cameras"][0]["sim"]["reconnect_after_s"] = 2.0  # the left camera comes back after an unplug
     path = root / "rig.toml"
     path.write_text(dump_config(parse_config(data, path)))
     return load_config(path)
@@ -252,3 +253,24 @@ def test_a_sync_check_from_the_page_gives_its_verdict_and_the_board_figures_show
     wait_until(lambda: driver.execute_script("return document.body.dataset.activity") == "previewing", 60, "previews again")
     status, reply = _post(server.url + "api/sync-check", {"seconds": -1})
     assert status == 400 and "seconds" in reply["error"]
+
+
+def test_a_camera_that_goes_and_comes_back_is_a_banner_and_the_host_checks_are_a_panel(console, driver):
+    rig, server = console
+    driver.get(server.url)
+    wait_until(lambda: driver.execute_script("return document.body.dataset.activity") == "previewing", 60, "previews")
+    wait_until(lambda: rig.session is not None and "left" in rig.session.cameras, 10, "the preview session")
+    rig.session.cameras["left"].unplug()  # the simulated camera's own fault: its cable pulled
+    wait_until(lambda: "camera" in (driver.execute_script("return document.body.dataset.faults") or "").split()
+               or "camera_lost" in (driver.execute_script("return document.body.dataset.faults") or ""), 20, "a banner for the lost camera")
+    wait_until(lambda: "camera_back" in (driver.execute_script("return document.body.dataset.faults") or ""), 30, "the camera back")
+    text = driver.find_element("id", "banners").text
+    assert "left" in text
+    wait_until(lambda: data(driver, '[data-camera="left"]', "health") in ("ok", "warn"), 20, "the left tile healthy again")
+    driver.find_element("css selector", '[data-action="doctor"]').click()
+    verdict = wait_until(lambda: driver.execute_script("return document.body.dataset.doctor") not in ("", "running", None)
+                         and driver.execute_script("return document.body.dataset.doctor"), 120, "the doctor's verdict")
+    assert verdict in ("ok", "warn", "fail")
+    rows = driver.execute_script("return document.querySelectorAll('#doctor tbody tr').length")
+    assert rows >= 5  # a line per check: usb, network, devices, memory, disk, compute
+    assert any(c["area"] == "disk" for c in rig.status()["health"]["checks"])

@@ -144,10 +144,11 @@ function onStatus(s) {
     if (cam.control_error) $(".control-error", el).textContent = cam.control_error;
   }
   const rec = s.recording, running = ["starting", "recording", "stopping"].includes(rec.state);
-  const operator = s.role === "operator";
+  const operator = s.role === "operator", h0 = s.health;
   document.querySelectorAll("[data-action]").forEach(b => {
     const a = b.dataset.action;
     if (a === "stop") b.disabled = !operator || rec.state !== "recording";
+    else if (a === "doctor") b.disabled = !operator || s.activity !== "previewing" || (h0 && h0.state === "running");
     else if (["record", "sync-check"].includes(a)) b.disabled = !operator || s.activity !== "previewing";
     else if (["set-controls", "set-all"].includes(a)) b.disabled = !operator || s.activity === "starting" || s.activity === "idle";
   });
@@ -166,9 +167,14 @@ function onStatus(s) {
   }).join("");
   $("#events").innerHTML = s.events.slice().reverse().map(e => `<li class="${e.level}">${new Date(1000 * e.time).toLocaleTimeString()} ${escape(e.kind)}: ${escape(e.detail)}</li>`).join("");
   showSync(s.sync);
-  const faults = s.cameras.filter(c => c.health === "bad").map(c => `${c.name}: no frames`);
-  if (s.activity === "idle") faults.push("the rig is not running (see the events)");
-  $("#banners").innerHTML = faults.map(f => `<div>${escape(f)}</div>`).join("");
+  $("#banners").innerHTML = (s.faults || []).map(f => `<div class="${f.level}" data-fault="${escape(f.kind)}">${escape(f.detail)}</div>`).join("");
+  document.body.dataset.faults = (s.faults || []).map(f => f.kind).join(" ");
+  const h = s.health;
+  $("#doctor-verdict").textContent = h ? (h.state === "done" ? h.verdict : h.state) : "";
+  document.body.dataset.doctor = h ? (h.verdict || h.state) : "";
+  $("#doctor tbody").innerHTML = h && h.checks ? h.checks.map(c => `<tr class="${c.status}"><td>${escape(c.status)}</td><td>${escape(c.area)}</td>`
+    + `<td>${escape(c.name)}</td><td>${escape(c.measured)}</td><td>${escape(c.needed)}</td><td><code>${escape(c.fix || "")}</code></td></tr>`).join("")
+    : (h && h.error ? `<tr><td class="error">${escape(h.error)}</td></tr>` : "");
   if (!running && rec.take && rec.take !== state.lastTake && rec.state !== "idle") {
     state.lastTake = rec.take;
     api("GET", `api/take-name?after=${encodeURIComponent(rec.take)}`).then(r => { if (!$("#take-name").matches(":focus")) $("#take-name").value = r.take; });
@@ -227,6 +233,7 @@ document.querySelector('[data-action="sync-check"]').addEventListener("click", (
   try { seconds = parseNumber($("#sync-seconds").value, "seconds"); } catch (e) { $("#sync-error").textContent = e.message; return; }
   api("POST", "api/sync-check", seconds === null ? {} : { seconds }).then(refresh).catch(e => { $("#sync-error").textContent = e.message; });
 });
+document.querySelector('[data-action="doctor"]').addEventListener("click", () => api("POST", "api/doctor").then(refresh).catch(() => {}));
 $("#take-notes").addEventListener("input", () => {
   clearTimeout(state.notesTimer);
   $("#notes-saved").textContent = "…";
