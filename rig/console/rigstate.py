@@ -104,6 +104,7 @@ class ConsoleRig:
         self._take_thread: Optional[threading.Thread] = None
         self.summaries: dict[str, dict] = {}
         self.check: Optional[dict] = None  # the sync check running or last run
+        self._cache: dict[str, tuple[float, Any]] = {}
         self.doctor: Optional[dict] = None  # the host checks running or last run
         self.notes = take_names.Notes(self.storage)
 
@@ -205,6 +206,13 @@ class ConsoleRig:
         level = "error" if ev.kind in ("board_disconnected", "camera_lost", "board_error", "boot") else "info"
         self.event(ev.kind, ev.detail, level)
 
+    def pause_previews(self, timeout: float = 20.0) -> None:
+        """Let go of the cameras (another program needs them: `rig record` beside the console, say)."""
+        self._take_the_rig(timeout)
+
+    def resume_previews(self) -> None:
+        self._yield.clear()
+
     def _take_the_rig(self, timeout: float = 20.0) -> None:
         """Make the preview session let go of the cameras (a take opens its own)."""
         self._yield.set()
@@ -272,7 +280,12 @@ class ConsoleRig:
         if self.check is not None and self.check["state"] in ("starting", "running"):
             raise ConfigError(f"{what}: a sync check is running; wait for its verdict")
 
-    def start_take(self, name: Optional[str] = None, notes: Optional[str] = None, seconds: Optional[float] = None) -> dict:
+    CODECS = ("raw", "png")
+
+    def start_take(self, name: Optional[str] = None, notes: Optional[str] = None, seconds: Optional[float] = None,
+                   codec: str = "raw") -> dict:
+        if codec not in self.CODECS:
+            raise ConfigError(f"codec must be one of {', '.join(self.CODECS)}, got {str(codec)[:20]!r}")
         with self.lock:
             self._check_free("record")
             name = take_names.check_new(self.storage, name) if name else take_names.next_name(self.storage)
@@ -283,11 +296,11 @@ class ConsoleRig:
             self.take = {"take": name, "state": "starting", "started": None, "figures": {}, "error": None,
                          "seconds": seconds, "out": str(self.storage / name)}
             self.activity = "recording"
-        self._take_thread = threading.Thread(target=self._run_take, args=(name, stop, seconds), name=f"console-take-{name}", daemon=True)
+        self._take_thread = threading.Thread(target=self._run_take, args=(name, stop, seconds, codec), name=f"console-take-{name}", daemon=True)
         self._take_thread.start()
         return dict(self.take)
 
-    def _run_take(self, name: str, stop: threading.Event, seconds: Optional[float]) -> None:
+    def _run_take(self, name: str, stop: threading.Event, seconds: Optional[float], codec: str = "raw") -> None:
         take = self.take
         out = self.storage / name
         try:
@@ -297,7 +310,7 @@ class ConsoleRig:
             take["state"] = "recording"
             self.event("record", f"take {name} started")
             # rig record's own take: its disk check, its writer; until stopped (or `seconds`)
-            result = self._record(self.cfg, out, seconds=seconds if seconds else 24 * 3600.0, stop=stop, tap=self,
+            result = self._record(self.cfg, out, seconds=seconds if seconds else 24 * 3600.0, stop=stop, tap=self, codec=codec,
                                   notes=lambda text: self.event("record", text))
             summary = result.to_dict()
             take["summary"] = summary
@@ -436,12 +449,7 @@ class ConsoleRig:
             out.append({"kind": "board", "level": "error", "detail": f"trigger board unplugged ({getattr(board, 'last_error', '') or 'no reply'})"})
         disk = self._disk()
         if disk.get("free_bytes") is not None:
-            from rig.storage.disk import rig_data_rate
-
-            try:
-                rate = rig_data_rate(self.cfg)
-            except Exception:
-                rate = 0.0
+            rate = self._cached("data_rate", lambda: _data_rate(self.cfg))
             if rate > 0 and disk["free_bytes"] / rate / 60.0 < self.DISK_LOW_MINUTES:
                 out.append({"kind": "disk", "level": "error",
                             "detail": f"disk nearly full: {disk['free_bytes'] / 1e9:.1f} GB free, {disk['free_bytes'] / rate / 60.0:.1f} minutes of the rig's data"})
@@ -473,7 +481,7 @@ class ConsoleRig:
                          "gain": controls.get("gain"), "ranges": controls.get("ranges", {}), "live_controls": bool(controls.get("live")),
                          "control_error": v.control_error, "seq": v.seq})
         return {"rig": self.cfg.name, "activity": self.activity, "cameras": cams, "recording": self._recording(now),
-                "takes": take_names.listing(self.storage, self.summaries, running=self._running_take()), "events": list(self.events)[-20:],
+                "takes": self._cached("takes", lambda: take_names.listing(self.storage, self.summaries, running=self._running_take())), "events": list(self.events)[-20:],
                 "disk": self._disk(), "sync": self._sync(), "faults": self.faults(cams, now), "health": self.doctor}
 
     def _running_take(self) -> Optional[str]:
@@ -500,7 +508,20 @@ class ConsoleRig:
             out["minutes_left"] = round(disk["free_bytes"] / rate / 60.0, 1)
         return out
 
+    SLOW_FIGURES_S = 1.0  # the disk's free space and the takes' list are read at most this often
+
+    def _cached(self, key: str, fn):
+        now = time.monotonic()
+        hit = self._cache.get(key)
+        if hit is None or now - hit[0] > self.SLOW_FIGURES_S:
+            hit = (now, fn())
+            self._cache[key] = hit
+        return hit[1]
+
     def _disk(self) -> dict:
+        return self._cached("disk", self._read_disk)
+
+    def _read_disk(self) -> dict:
         from rig.storage.disk import nearest_existing_folder
 
         try:
@@ -508,6 +529,15 @@ class ConsoleRig:
         except OSError:
             return {"free_bytes": None}
         return {"free_bytes": usage.free, "total_bytes": usage.total, "folder": str(self.storage)}
+
+
+def _data_rate(cfg) -> float:
+    from rig.storage.disk import rig_data_rate
+
+    try:
+        return float(rig_data_rate(cfg))
+    except Exception:  # a rig whose rate cannot be told has no disk banner
+        return 0.0
 
 
 class _CheckTap:

@@ -7,7 +7,7 @@ Routes (access: rig/console/access.py; every state change needs the operator's r
                                  exposure_us, gain, ranges), recording (state, take, sets, lost, ...),
                                  takes (with their validation), events, disk, role
     POST /api/controls           {"camera": NAME | "*", "exposure_us": x, "gain": y}: set live, read back
-    POST /api/record/start       {"take": NAME (optional), "notes": TEXT (optional)}
+    POST /api/record/start       {"take": NAME, "notes": TEXT, "seconds": S, "codec": "raw" | "png"} (all optional)
     POST /api/record/stop
     POST /api/doctor             rig doctor's checks; their lines in status's health
     POST /api/sync-check         {"seconds": N}: rig sync check's own run; its verdict in status's sync.check
@@ -159,7 +159,7 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
     async def record_start(request: Request):
         try:
             data = await _body(request)
-            _only(data, {"take", "notes", "seconds"})
+            _only(data, {"take", "notes", "seconds", "codec"})
             name, notes = data.get("take") or None, data.get("notes")
             seconds = _number_or_none(data, "seconds")
             if seconds is not None and not seconds > 0:
@@ -168,7 +168,7 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
                 raise ConfigError("notes must be text")
         except ConfigError as exc:
             return _bad(str(exc))
-        return await guarded(rig.start_take, name, notes, seconds)
+        return await guarded(rig.start_take, name, notes, seconds, data.get("codec", "raw"))
 
     @app.post("/api/record/stop")
     async def record_stop():
@@ -240,11 +240,17 @@ class _Viewer:
     async def run(self) -> None:
         tasks = [asyncio.create_task(c) for c in (self.receiver(), self.status(), self.previews())]
         try:
-            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+        for t in done:
+            exc = t.exception()
+            if exc is not None and not isinstance(exc, (WebSocketDisconnect, OSError)):
+                log.error("console: viewer failed: %s", exc, exc_info=exc)
+                with contextlib.suppress(Exception):
+                    await self.socket.close(code=1011)
 
     async def receiver(self) -> None:
         while True:
