@@ -134,6 +134,10 @@ class Sequence:
         """Ground-truth depth (metres, 0 = nothing) of a simulator frame, rendered at the chosen size."""
         return self.truth(cam, sim_time_s, size)[0]
 
+    def release_truth(self) -> None:
+        """Let go of the scene the truth is rendered from (made again on the next `truth`)."""
+        self._truth = None
+
     def truth(self, cam: str, sim_time_s: Optional[float], size: Optional[tuple[int, int]] = None):
         """Ground-truth depth and person mask of a simulator frame at the chosen size ((None, None) for a recorded take)."""
         if self.ground_truth is None or sim_time_s is None:
@@ -176,6 +180,7 @@ class TrainingSet:
                 seq.camera_model(n)  # a clear error now for a sequence without calibration
             self.positions += [(k, p) for p in seq.complete_sets(names)]
         self.names = names
+        self._truth_order: list[int] = []  # the takes whose scenes are kept, the one read last at the end
 
     @property
     def roots(self) -> list[str]:
@@ -189,11 +194,26 @@ class TrainingSet:
     def __len__(self) -> int:
         return len(self.positions)
 
+    # A simulated take renders its truth from its scene, which holds about 90 MB (a 640x360 take): kept
+    # for every take of a large data set it filled the host (17 GB for 192 takes in one training run).
+    # The scenes of the takes read last are kept; the others are let go, and made again if needed.
+    TRUTH_SCENES_KEPT = 4
+
     def frame_set(self, index: int, with_truth: bool = False) -> Sample:
         k, p = self.positions[index]
         s = self.sequences[k].sample(p, self.names, with_depth=with_truth)
         s.key = f"{self.sequences[k].root.name}#{s.set}"
+        if with_truth:
+            self._keep_truth(k)
         return s
+
+    def _keep_truth(self, k: int) -> None:
+        order = self._truth_order
+        if k in order:
+            order.remove(k)
+        order.append(k)
+        while len(order) > self.TRUTH_SCENES_KEPT:
+            self.sequences[order.pop(0)].release_truth()
 
 
 def expand_sequences(paths: list[Path]) -> list[Path]:

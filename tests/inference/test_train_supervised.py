@@ -255,3 +255,23 @@ def test_a_stage1_with_nothing_to_learn_from_is_refused():
     for bad in ({"stage1_render": -1}, {"snapshot_every": -2}, {"stage1_render": True}):
         with pytest.raises(InferenceError):
             TrainConfig.from_dict(bad)
+
+
+def test_reading_the_truth_of_many_takes_keeps_only_the_last_few_scenes(tmp_path):
+    """The trainer read truth from every take of a 192-take set and kept each take's scene (about
+    90 MB at 640x360): the host filled. Only the scenes of the takes read last stay."""
+    from simulator.takes import write_take
+    from rig.storage.dataset import TrainingSet
+
+    roots = [Path(write_take(tmp_path / f"t{i}", seed=60 + i, seconds=0.1, fps=10, size=(64, 40), cameras=3)["out"])
+             for i in range(TrainingSet.TRUTH_SCENES_KEPT + 2)]
+    data = TrainingSet(roots)
+    first_of = {k: data.positions.index(next(p for p in data.positions if p[0] == k)) for k in range(len(roots))}
+    for k in range(len(roots)):
+        fs = data.frame_set(first_of[k], with_truth=True)
+        assert fs.depth and all(d is not None for d in fs.depth.values())
+    kept = [k for k, s in enumerate(data.sequences) if s._truth is not None]
+    assert kept == list(range(2, len(roots)))
+    # A take let go renders its truth again when read.
+    again = data.frame_set(first_of[0], with_truth=True)
+    assert all(d is not None for d in again.depth.values())
