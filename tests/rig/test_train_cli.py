@@ -194,10 +194,14 @@ def test_a_checkpoint_of_another_configuration_is_refused_and_kept(takes, light,
     one_line_exit_2(r)
     assert "configuration" in r.stderr
     assert (out / "checkpoint.pt").read_bytes() == before
-    # A new run may start from the trained weights (--init), of the same model configuration only.
-    r = rig("train", *takes, "-o", tmp_path / "bigger", "--size", "preview", "--init", out / "model.pt")
+    # A new run may start from the trained weights (--init), of the same weight-bearing configuration
+    # only: another size is allowed (no weight depends on it), a wider stage 2 is not.
+    wider = tmp_path / "wider.json"
+    wider.write_text(json.dumps({**LIGHT, "model": {"stage2": {"feature_dim": 24}}}))
+    r = rig("train", *takes, "-o", tmp_path / "bigger", *SMALL, "--config", wider, "--init", out / "model.pt")
     one_line_exit_2(r)
     assert "configuration" in r.stderr
+    assert not (tmp_path / "bigger" / "checkpoint.pt").exists()
     r = rig("train", *takes, "-o", tmp_path / "again", *SMALL, "--config", light, "--batch", "1", "--stage1-steps", "1",
             "--stage2-steps", "0", "--init", out / "model.pt")
     assert r.returncode == 0, r.stderr
