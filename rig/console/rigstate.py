@@ -107,6 +107,7 @@ class ConsoleRig:
         self._cache: dict[str, tuple[float, Any]] = {}
         self.doctor: Optional[dict] = None  # the host checks running or last run
         self.notes = take_names.Notes(self.storage)
+        self.live = None  # rig.console.live.ConsoleLive, fed every frame set seen (previews or a take)
 
     # --- life ------------------------------------------------------------------------------------
     def start(self) -> "ConsoleRig":
@@ -116,6 +117,8 @@ class ConsoleRig:
 
     def close(self) -> None:
         self._closed.set()
+        if self.live is not None:
+            self.live.stop()
         self.stop_take()
         if self._take_thread is not None:
             self._take_thread.join(30)
@@ -145,6 +148,9 @@ class ConsoleRig:
             v.arrivals.append((now, frame.device_ts_ns))
         if figures and self.take is not None:
             self.take["figures"] = figures
+        live = self.live
+        if live is not None:
+            live.offer(fs)
 
     def closed(self) -> None:
         with self.lock:
@@ -482,7 +488,8 @@ class ConsoleRig:
                          "control_error": v.control_error, "seq": v.seq})
         return {"rig": self.cfg.name, "activity": self.activity, "cameras": cams, "recording": self._recording(now),
                 "takes": self._cached("takes", lambda: take_names.listing(self.storage, self.summaries, running=self._running_take())), "events": list(self.events)[-20:],
-                "disk": self._disk(), "sync": self._sync(), "faults": self.faults(cams, now), "health": self.doctor}
+                "disk": self._disk(), "sync": self._sync(), "faults": self.faults(cams, now), "health": self.doctor,
+                "live": self.live.status() if self.live is not None else {"state": "off", "error": None}}
 
     def _running_take(self) -> Optional[str]:
         t = self.take

@@ -9,6 +9,9 @@ Routes (access: rig/console/access.py; every state change needs the operator's r
     POST /api/controls           {"camera": NAME | "*", "exposure_us": x, "gain": y}: set live, read back
     POST /api/record/start       {"take": NAME, "notes": TEXT, "seconds": S, "codec": "raw" | "png"} (all optional)
     POST /api/record/stop
+    POST /api/live/start         starts `rig live`'s engine on the console's frame sets; its page at /live/
+    POST /api/live/stop
+    GET  /live/...               `rig live`'s viewer and routes (/live/ws, /live/status, ...) while it runs
     POST /api/doctor             rig doctor's checks; their lines in status's health
     POST /api/sync-check         {"seconds": N}: rig sync check's own run; its verdict in status's sync.check
     PUT  /api/notes              {"take": NAME, "text": TEXT}: saved as typed
@@ -111,6 +114,11 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
     app.state.stopping = stopping
     app.add_middleware(ConsoleGuard, operator_token=operator_token, viewer_token=viewer_token)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    if rig.live is None:
+        from rig.console.live import ConsoleLive
+
+        rig.live = ConsoleLive(rig.cfg)
+    app.mount("/live", rig.live.mount)
 
     def role_of(request) -> str:
         return request.scope.get("state", {}).get("role", "viewer")
@@ -183,6 +191,14 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
         except ConfigError as exc:
             return _bad(str(exc))
         return await guarded(rig.start_sync_check, 10.0 if seconds is None else seconds)
+
+    @app.post("/api/live/start")
+    async def live_start():
+        return await guarded(rig.live.start)
+
+    @app.post("/api/live/stop")
+    async def live_stop():
+        return await guarded(rig.live.stop)
 
     @app.post("/api/doctor")
     async def doctor():

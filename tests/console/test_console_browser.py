@@ -274,3 +274,39 @@ def test_a_camera_that_goes_and_comes_back_is_a_banner_and_the_host_checks_are_a
     rows = driver.execute_script("return document.querySelectorAll('#doctor tbody tr').length")
     assert rows >= 5  # a line per check: usb, network, devices, memory, disk, compute
     assert any(c["area"] == "disk" for c in rig.status()["health"]["checks"])
+
+
+def test_the_live_tab_starts_rig_lives_engine_on_the_consoles_frames_and_shows_the_novel_view(console, driver):
+    import cv2
+    import numpy as np
+
+    rig, server = console
+    driver.get(server.url)
+    wait_until(lambda: data(driver, "body", "role") == "operator", 20, "the first status")
+    driver.find_element("css selector", '[data-action="live"]').click()
+    assert data(driver, "body", "tab") == "live"
+    wait_until(lambda: data(driver, "body", "live") == "running", 120, "the live view to start")
+    try:
+        frame = wait_until(lambda: driver.find_elements("css selector", "#live-frame[src='live/']"), 10, "the live frame")[0]
+        driver.switch_to.frame(frame)
+        first = int(wait_until(lambda: data(driver, "body", "lastSet"), 60, "a novel view drawn in the live tab"))
+        wait_until(lambda: int(data(driver, "body", "lastSet") or 0) > first, 60, "a newer frame set drawn")
+        driver.switch_to.default_content()
+        # the novel view is a picture of the rig's scene, rendered from the console's own frame sets
+        with urllib.request.urlopen(server.url + "live/snapshot.png", timeout=60) as r:
+            shot = cv2.imdecode(np.frombuffer(r.read(), np.uint8), cv2.IMREAD_COLOR)
+        assert shot is not None and shot.std() > 10
+        assert rig.live.source is not None and rig.live.source.incomplete == 0
+        # the previews keep running beside it
+        seq = rig.views["left"].seq
+        wait_until(lambda: rig.views["left"].seq > seq + 3, 10, "previews beside the live view")
+    finally:
+        driver.switch_to.default_content()
+        driver.find_element("css selector", '[data-tab="rig"]').click()
+        request = urllib.request.Request(server.url + "api/live/stop", method="POST", data=b"{}",
+                                         headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=30) as r:
+            assert json.load(r)["state"] == "off"
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(server.url + "live/status", timeout=10)
+    assert err.value.code == 503

@@ -150,6 +150,7 @@ function onStatus(s) {
     if (a === "stop") b.disabled = !operator || rec.state !== "recording";
     else if (a === "doctor") b.disabled = !operator || s.activity !== "previewing" || (h0 && h0.state === "running");
     else if (["record", "sync-check"].includes(a)) b.disabled = !operator || s.activity !== "previewing";
+    else if (a === "live-stop") b.disabled = !operator || !s.live || s.live.state !== "running";
     else if (["set-controls", "set-all"].includes(a)) b.disabled = !operator || s.activity === "starting" || s.activity === "idle";
   });
   $("#take-name").disabled = running || !operator;
@@ -175,6 +176,7 @@ function onStatus(s) {
   $("#doctor tbody").innerHTML = h && h.checks ? h.checks.map(c => `<tr class="${c.status}"><td>${escape(c.status)}</td><td>${escape(c.area)}</td>`
     + `<td>${escape(c.name)}</td><td>${escape(c.measured)}</td><td>${escape(c.needed)}</td><td><code>${escape(c.fix || "")}</code></td></tr>`).join("")
     : (h && h.error ? `<tr><td class="error">${escape(h.error)}</td></tr>` : "");
+  showLive(s.live || { state: "off" });
   if (!running && rec.take && rec.take !== state.lastTake && rec.state !== "idle") {
     state.lastTake = rec.take;
     api("GET", `api/take-name?after=${encodeURIComponent(rec.take)}`).then(r => { if (!$("#take-name").matches(":focus")) $("#take-name").value = r.take; });
@@ -248,3 +250,32 @@ function saveNotes() {
 }
 api("GET", "api/take-name").then(r => { if (!$("#take-name").value) $("#take-name").value = r.take; }).catch(() => {});
 connect();
+
+// The Live tab: `rig live`'s own viewer (served at live/ by the console) in a frame, started on the
+// first visit by an operator; a viewer token watches it once an operator has started it.
+function showTab(name) {
+  document.body.dataset.tab = name;
+  document.querySelectorAll("nav.tabs [data-tab]").forEach(b => b.classList.toggle("on", b.dataset.tab === name));
+  $("main").hidden = name !== "rig";
+  $("#live-panel").hidden = name !== "live";
+}
+function showLive(live) {
+  document.body.dataset.live = live.state;
+  $("#live-state").textContent = live.state;
+  $("#live-error").textContent = live.error || "";
+  $("#live-figures").textContent = live.state === "running" ? `in ${fmt(live.fps_in, 1)} fps · out ${fmt(live.fps_out, 1)} fps` : "";
+  const frame = $("#live-frame"), want = live.state === "running" && document.body.dataset.tab === "live" ? "live/" : "about:blank";
+  if (frame.getAttribute("src") !== want) frame.setAttribute("src", want);
+}
+document.querySelector('[data-tab="rig"]').addEventListener("click", () => { showTab("rig"); refresh(); });
+document.querySelector('[data-action="live"]').addEventListener("click", () => {
+  showTab("live");
+  const live = state.status && state.status.live;
+  if (state.status && state.status.role === "operator" && (!live || live.state === "off")) {
+    $("#live-state").textContent = "starting";
+    api("POST", "api/live/start").then(refresh).catch(e => { $("#live-error").textContent = e.message; });
+  } else refresh();
+});
+document.querySelector('[data-action="live-stop"]').addEventListener("click", () =>
+  api("POST", "api/live/stop").then(refresh).catch(e => { $("#live-error").textContent = e.message; }));
+showTab("rig");
