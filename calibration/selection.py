@@ -42,6 +42,7 @@ class ViewSelector:
         self.novelty = novelty
         self.min_corners = min_corners
         self.kept = 0
+        self.views: list[list[str]] = []  # the cameras that saw the board, per kept view
 
     def _cells(self, name: str, corners: Corners) -> np.ndarray:
         w, h = self.cams[name].size
@@ -70,7 +71,9 @@ class ViewSelector:
                 return False
         return True
 
-    def consider(self, detections: dict[str, Corners | None]) -> Verdict:
+    def consider(self, detections: dict[str, Corners | None], force: bool = False) -> Verdict:
+        """Keep the view when it adds something; `force` keeps any view in which the board is seen
+        (a view taken by hand: the operator knows why)."""
         seen = {n: c for n, c in detections.items() if c is not None and len(c) >= self.min_corners and n in self.cams}
         if not seen:
             return Verdict(False, "board not seen", [], {})
@@ -81,13 +84,29 @@ class ViewSelector:
         # or a new tilt, which separates focal length from distance); it is kept like a shared one.
         if adds_cells or novel:
             reason = "new coverage in " + ", ".join(adds_cells) if adds_cells else "new board pose in " + ", ".join(novel)
+        elif force:
+            reason = "kept by hand"
         else:
             return Verdict(False, "nothing new", sorted(seen), {})
         for n, c in seen.items():
             self.cams[n].seen |= self._cells(n, c)
             self.cams[n].kept.append(c)
         self.kept += 1
+        self.views.append(sorted(seen))
         return Verdict(True, reason, sorted(seen), new_cells)
 
     def coverage(self) -> dict[str, float]:
+        """Share of each camera's image (GRID cells) the kept views' boards have covered."""
         return {n: round(float(st.seen.mean()), 3) for n, st in self.cams.items()}
+
+    def cells(self) -> dict[str, list[list[bool]]]:
+        """Each camera's covered GRID cells (rows of columns), as a coverage map shows them."""
+        return {n: st.seen.tolist() for n, st in self.cams.items()}
+
+    def views_per_camera(self) -> dict[str, int]:
+        return {n: len(st.kept) for n, st in self.cams.items()}
+
+    def pairs(self) -> dict[tuple[str, str], int]:
+        """Kept views each pair of cameras saw together (what ties their poses to each other)."""
+        names = list(self.cams)
+        return {(a, b): sum(1 for v in self.views if a in v and b in v) for i, a in enumerate(names) for b in names[i + 1:]}

@@ -193,9 +193,14 @@ class CalibrationSession:
     there is no motion to blur); `scene_time(k)` is the scene time of the k-th synchronised view.
     """
 
-    def __init__(self, config, board: BoardSpec, hold_s: float = HOLD_S):
+    def __init__(self, config, board: BoardSpec, hold_s: float = HOLD_S, views_per_station: int = 1):
         if not hold_s > 0:
             raise SimulatorError(f"hold_s must be positive, got {hold_s}")
+        if not (isinstance(views_per_station, int) and views_per_station >= 1):
+            raise SimulatorError(f"views_per_station must be a whole number >= 1, got {views_per_station!r}")
+        # Views taken while the board is held at one station: a crew holds it still for a moment,
+        # and a capture that keeps a view only once the board is still needs two or more.
+        self.views_per_station = views_per_station
         rig = SimRig(config)
         self.board = board
         self.hold_s = float(hold_s)
@@ -222,10 +227,15 @@ class CalibrationSession:
         st = self.stations[k]
         return st.R, st.t
 
+    @property
+    def views(self) -> int:
+        """Synchronised views until the board has been at every station."""
+        return self.sets * self.views_per_station
+
     def scene_time(self, view_index: int) -> float:
         """Scene time shown by the view_index-th synchronised view (0-based): the middle of its
         station's hold; past the last station the board stays there."""
-        return (min(int(view_index), self.sets - 1) + 0.5) * self.hold_s
+        return (min(int(view_index) // self.views_per_station, self.sets - 1) + 0.5) * self.hold_s
 
     @property
     def scene(self) -> Scene:

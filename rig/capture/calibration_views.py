@@ -35,68 +35,125 @@ def still_settings(cameras) -> list:
     return settings
 
 
-def capture_views(settings, board, out: Path, roles: dict, views: int, limit: int, interval: float, timeout: float) -> dict:
-    """Look at up to `limit` sets of stills from the cameras of `settings` (`still_settings`) and keep
-    those that add coverage of the board, until `views` are kept: OUT/CAMERA/NNNN.png, and
-    OUT/roles.json naming the stereo pair (`roles`) with the first. The summary: views kept and
-    looked at, coverage, views per camera, how often each camera saw the board, and each kept view."""
-    import json
-    import time
-    from concurrent.futures import ThreadPoolExecutor
+class ViewCapture:
+    """The stills of a calibration capture, one set at a time: `rig calibrate capture` loops over
+    them, the console's calibration panel shows each set and keeps views by hand or when the board
+    is still. Use as a context manager (the cameras of `settings` (`still_settings`) are opened and
+    started, and closed on leaving).
 
-    import cv2
+        with ViewCapture(settings, board, out, roles) as cap:
+            images, found = cap.grab(timeout)     # a set of stills and the board's corners in each
+            verdict = cap.consider(images, found)  # kept (OUT/CAMERA/NNNN.png) when it adds coverage
+    """
 
-    from calibration.detect import make_detector, to_gray
-    from calibration.selection import ViewSelector
-    from rig.cameras import open_camera
-    from rig.errors import StorageError
-    from rig.progress import StatusLine
+    def __init__(self, settings, board, out: Path, roles: dict):
+        from calibration.detect import make_detector
+        from calibration.selection import ViewSelector
 
-    detectors = {s.name: make_detector(board) for s in settings}  # one each: detection runs in parallel
-    selector = ViewSelector({s.name: (s.width, s.height) for s in settings})
-    cameras = []
-    status = StatusLine()
-    kept: list[dict] = []
-    sightings = {s.name: 0 for s in settings}
-    looked = 0
-    try:
-        for s in settings:
-            cameras.append(open_camera(s))
-        for cam in cameras:
-            cam.start()
-        with ThreadPoolExecutor(max_workers=len(cameras)) as pool:
-            while looked < limit and len(kept) < views:
-                images = _grab_set(cameras, timeout)
-                looked += 1
-                found = dict(zip(images, pool.map(lambda kv: detectors[kv[0]](kv[1]), images.items())))
-                for name, corners in found.items():
-                    sightings[name] += corners is not None
-                verdict = selector.consider(found)
-                if verdict.keep:
-                    index = len(kept)
-                    if index == 0 and roles:  # tells `rig calibrate run` which cameras are the stereo pair
-                        out.mkdir(parents=True, exist_ok=True)
-                        (out / "roles.json").write_text(json.dumps(roles) + "\n")
-                    for name, img in images.items():
-                        path = out / name / f"{index:04d}.png"
-                        path.parent.mkdir(parents=True, exist_ok=True)
-                        if not cv2.imwrite(str(path), _to_bgr(img, to_gray)):
-                            raise StorageError(f"{path}: could not write the image (disk full or no permission?)")
-                    kept.append({"view": f"{index:04d}", "cameras": verdict.cameras, "reason": verdict.reason})
-                status.update(f"looked at {looked}/{limit} frame sets, kept {len(kept)} views (stops at {views})")
-                if interval > 0:
-                    time.sleep(interval)
-    finally:
-        for cam in cameras:
+        self.settings, self.board, self.out, self.roles = settings, board, Path(out), roles
+        self.detectors = {s.name: make_detector(board) for s in settings}  # one each: detection runs in parallel
+        self.selector = ViewSelector({s.name: (s.width, s.height) for s in settings})
+        self.kept: list[dict] = []
+        self.sightings = {s.name: 0 for s in settings}
+        self.looked = 0
+        self.cameras: list = []
+        self._pool = None
+
+    def __enter__(self) -> "ViewCapture":
+        from concurrent.futures import ThreadPoolExecutor
+
+        from rig.cameras import open_camera
+
+        try:
+            for s in self.settings:
+                self.cameras.append(open_camera(s))
+            for cam in self.cameras:
+                cam.start()
+        except BaseException:
+            self.close()
+            raise
+        self._pool = ThreadPoolExecutor(max_workers=len(self.cameras))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        for cam in self.cameras:
             try:
                 cam.stop()
                 cam.close()
             except Exception:  # closing must not hide the error that stopped the capture
                 pass
+        self.cameras = []
+
+    def grab(self, timeout: float) -> tuple[dict, dict]:
+        """One set of stills ({camera: image}) and the board's corners found in each ({camera:
+        calibration.detect.Corners or None})."""
+        images = _grab_set(self.cameras, timeout)
+        self.looked += 1
+        found = dict(zip(images, self._pool.map(lambda kv: self.detectors[kv[0]](kv[1]), images.items())))
+        for name, corners in found.items():
+            self.sightings[name] += corners is not None
+        return images, found
+
+    def consider(self, images: dict, found: dict, force: bool = False):
+        """Keep the set when it adds coverage (or, with `force`, whenever the board is seen): its
+        images are written as OUT/CAMERA/NNNN.png. The selector's verdict."""
+        import json
+
+        import cv2
+
+        from calibration.detect import to_gray
+        from rig.errors import StorageError
+
+        verdict = self.selector.consider(found, force=force)
+        if verdict.keep:
+            index = len(self.kept)
+            if index == 0 and self.roles:  # tells `rig calibrate run` which cameras are the stereo pair
+                self.out.mkdir(parents=True, exist_ok=True)
+                (self.out / "roles.json").write_text(json.dumps(self.roles) + "\n")
+            for name, img in images.items():
+                path = self.out / name / f"{index:04d}.png"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                if not cv2.imwrite(str(path), _to_bgr(img, to_gray)):
+                    raise StorageError(f"{path}: could not write the image (disk full or no permission?)")
+            self.kept.append({"view": f"{index:04d}", "cameras": verdict.cameras, "reason": verdict.reason})
+        return verdict
+
+    def summary(self) -> dict:
+        """Views kept and looked at, coverage, views per camera, how often each camera saw the board,
+        and each kept view."""
+        per_camera = {s.name: sum(1 for k in self.kept if s.name in k["cameras"]) for s in self.settings}
+        return {"output": str(self.out), "views_kept": len(self.kept), "views_looked_at": self.looked,
+                "coverage": self.selector.coverage(), "views_per_camera": per_camera, "board_seen": dict(self.sightings),
+                "kept": list(self.kept)}
+
+
+def capture_views(settings, board, out: Path, roles: dict, views: int, limit: int, interval: float, timeout: float) -> dict:
+    """Look at up to `limit` sets of stills from the cameras of `settings` (`still_settings`) and keep
+    those that add coverage of the board, until `views` are kept: OUT/CAMERA/NNNN.png, and
+    OUT/roles.json naming the stereo pair (`roles`) with the first. The summary: ViewCapture.summary."""
+    import time
+
+    from rig.progress import StatusLine
+
+    status = StatusLine()
+    capture = ViewCapture(settings, board, out, roles)
+    try:
+        with capture:
+            while capture.looked < limit and len(capture.kept) < views:
+                images, found = capture.grab(timeout)
+                capture.consider(images, found)
+                status.update(f"looked at {capture.looked}/{limit} frame sets, kept {len(capture.kept)} views (stops at {views})")
+                if interval > 0:
+                    time.sleep(interval)
+    finally:
         status.done()
-    per_camera = {s.name: sum(1 for k in kept if s.name in k["cameras"]) for s in settings}
-    return {"output": str(out), "views_kept": len(kept), "views_looked_at": looked, "coverage": selector.coverage(),
-            "views_per_camera": per_camera, "board_seen": sightings, "kept": kept}
+    return capture.summary()
 
 
 def check_capture(summary: dict, board_file, names: list[str]) -> None:

@@ -23,6 +23,8 @@ def register(sub) -> None:
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT}; 0 = any free port)")
     p.add_argument("--token", help="operator token: may change settings and record (at least 8 characters)")
     p.add_argument("--viewer-token", help="viewer token: may watch only (at least 8 characters; needs --token or a generated one)")
+    p.add_argument("--board", type=Path, help="calibration board (TOML) for the calibration panel (default: board.toml beside "
+                                               "the config, as `rig config init --sim` writes it, when there is one)")
     p.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
     p.set_defaults(func=cmd_console)
 
@@ -46,12 +48,20 @@ def cmd_console(args: argparse.Namespace) -> int:
         token = secrets.token_urlsafe(18)  # a non-loopback console is never open
     if token is not None and token == args.viewer_token:
         raise ConfigError("console: --viewer-token must differ from the operator token")
-    cfg = load_config(args.config)
+    # The calibration the config names may not exist yet: the console's calibration panel makes it.
+    cfg = load_config(args.config, check_calibration=False)
+    board = args.board
+    if board is None and cfg.path is not None and (cfg.path.parent / "board.toml").is_file():
+        board = cfg.path.parent / "board.toml"
+    if board is not None:
+        from calibration.boards import load_board
+
+        load_board(board)  # a bad board file is one line now, not a failed calibration later
     try:
         sock = bind_socket(args.host, args.port, "console")
     except RigError as exc:
         raise ConfigError(str(exc)) from None
-    rig = ConsoleRig(cfg).start()
+    rig = ConsoleRig(cfg, board_file=board).start()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:

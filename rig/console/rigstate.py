@@ -56,6 +56,7 @@ class CameraView:
     delivered: int = 0
     controls: dict = field(default_factory=dict)
     control_error: Optional[str] = None
+    board: Optional[dict] = None  # while calibrating: the board's corners found in `image` (drawn on the tile)
 
     def fps(self, now: float) -> Optional[float]:
         """Frames per second by the camera's own clock over the last FPS_WINDOW_S."""
@@ -76,9 +77,11 @@ class CameraView:
 
 
 class ConsoleRig:
-    def __init__(self, cfg, session_factory: Optional[Callable] = None, record_fn: Optional[Callable] = None):
+    def __init__(self, cfg, session_factory: Optional[Callable] = None, record_fn: Optional[Callable] = None,
+                 board_file: Optional[Path] = None):
         from rig.capture.record import record
         from rig.capture.session import RigSession
+        from rig.console.calibration import ConsoleCalibration
 
         self.cfg = cfg
         self._session_factory = session_factory or RigSession
@@ -108,6 +111,7 @@ class ConsoleRig:
         self.doctor: Optional[dict] = None  # the host checks running or last run
         self.notes = take_names.Notes(self.storage)
         self.live = None  # rig.console.live.ConsoleLive, fed every frame set seen (previews or a take)
+        self.calibration = ConsoleCalibration(self, board_file)
 
     # --- life ------------------------------------------------------------------------------------
     def start(self) -> "ConsoleRig":
@@ -119,6 +123,7 @@ class ConsoleRig:
         self._closed.set()
         if self.live is not None:
             self.live.stop()
+        self.calibration.stop()
         self.stop_take()
         if self._take_thread is not None:
             self._take_thread.join(30)
@@ -151,6 +156,16 @@ class ConsoleRig:
         live = self.live
         if live is not None:
             live.offer(fs)
+
+    def show_stills(self, images: dict, boards: dict) -> None:
+        """Calibration stills on the tiles, with the board found in each (`boards`: camera -> corners to draw or None)."""
+        now = time.monotonic()
+        for name, image in images.items():
+            v = self.views.get(name)
+            if v is None:
+                continue
+            v.image, v.frame, v.frame_at, v.board = image, None, now, boards.get(name)
+            v.seq += 1
 
     def closed(self) -> None:
         with self.lock:
@@ -285,6 +300,8 @@ class ConsoleRig:
             raise ConfigError(f"{what}: take {self.take['take']} is running; stop it first")
         if self.check is not None and self.check["state"] in ("starting", "running"):
             raise ConfigError(f"{what}: a sync check is running; wait for its verdict")
+        if self.calibration.running:
+            raise ConfigError(f"{what}: the calibration is {self.calibration.state}; stop it first")
 
     CODECS = ("raw", "png")
 
@@ -464,6 +481,10 @@ class ConsoleRig:
             if e["kind"] in self.FAULT_EVENTS and wall - e["time"] < self.RECENT_S:
                 out.append({"kind": e["kind"], "level": "warn" if e["kind"] in ("camera_back", "board_connected") else "error",
                             "detail": e["detail"], "time": e["time"]})
+        from rig.config import calibration_problems
+
+        for problem in self._cached("calibration_problems", lambda: calibration_problems(self.cfg)):
+            out.append({"kind": "calibration", "level": "warn", "detail": f"{problem}; the Calibration panel makes one"})
         if self.activity == "idle":
             out.append({"kind": "rig", "level": "error", "detail": "the rig is not running (see the events)"})
         return out
@@ -485,11 +506,13 @@ class ConsoleRig:
                          "health": v.health(now), "exposure_us": reported if reported is not None else controls.get("exposure_us"),
                          "frame_exposure_us": getattr(v.frame, "exposure_us", None) if v.frame is not None else None,
                          "gain": controls.get("gain"), "ranges": controls.get("ranges", {}), "live_controls": bool(controls.get("live")),
-                         "control_error": v.control_error, "seq": v.seq})
+                         "control_error": v.control_error, "seq": v.seq, "board": v.board,
+                         "size": list(v.image.shape[1::-1]) if v.image is not None else None})
         return {"rig": self.cfg.name, "activity": self.activity, "cameras": cams, "recording": self._recording(now),
                 "takes": self._cached("takes", lambda: take_names.listing(self.storage, self.summaries, running=self._running_take())), "events": list(self.events)[-20:],
                 "disk": self._disk(), "sync": self._sync(), "faults": self.faults(cams, now), "health": self.doctor,
-                "live": self.live.status() if self.live is not None else {"state": "off", "error": None}}
+                "live": self.live.status() if self.live is not None else {"state": "off", "error": None},
+                "calibration": self.calibration.status()}
 
     def _running_take(self) -> Optional[str]:
         t = self.take

@@ -12,6 +12,11 @@ Routes (access: rig/console/access.py; every state change needs the operator's r
     POST /api/live/start         starts `rig live`'s engine on the console's frame sets; its page at /live/
     POST /api/live/stop
     GET  /live/...               `rig live`'s viewer and routes (/live/ws, /live/status, ...) while it runs
+    POST /api/calibration/start  {"auto": bool}: stills with the board drawn; views kept when it is still and adds coverage
+    POST /api/calibration/auto   {"auto": bool}
+    POST /api/calibration/capture  keep the next set in which the board is seen
+    POST /api/calibration/stop
+    POST /api/calibration/solve  rig calibrate run's solve; written where the config names the calibration
     POST /api/doctor             rig doctor's checks; their lines in status's health
     POST /api/sync-check         {"seconds": N}: rig sync check's own run; its verdict in status's sync.check
     PUT  /api/notes              {"take": NAME, "text": TEXT}: saved as typed
@@ -199,6 +204,41 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
     @app.post("/api/live/stop")
     async def live_stop():
         return await guarded(rig.live.stop)
+
+    def _auto(data: dict) -> bool:
+        _only(data, {"auto"})
+        auto = data.get("auto", True)
+        if not isinstance(auto, bool):
+            raise ConfigError(f"auto must be true or false, got {str(auto)[:20]!r}")
+        return auto
+
+    @app.post("/api/calibration/start")
+    async def calibration_start(request: Request):
+        try:
+            auto = _auto(await _body(request))
+        except ConfigError as exc:
+            return _bad(str(exc))
+        return await guarded(rig.calibration.start, auto)
+
+    @app.post("/api/calibration/auto")
+    async def calibration_auto(request: Request):
+        try:
+            auto = _auto(await _body(request))
+        except ConfigError as exc:
+            return _bad(str(exc))
+        return await guarded(rig.calibration.set_auto, auto)
+
+    @app.post("/api/calibration/capture")
+    async def calibration_capture():
+        return await guarded(rig.calibration.capture)
+
+    @app.post("/api/calibration/stop")
+    async def calibration_stop():
+        return await guarded(rig.calibration.stop)
+
+    @app.post("/api/calibration/solve")
+    async def calibration_solve():
+        return await guarded(rig.calibration.solve)
 
     @app.post("/api/doctor")
     async def doctor():

@@ -28,7 +28,8 @@ def sim_config(tmp_path):
 @pytest.mark.parametrize("args, said", [(["--port", "70000"], "--port must be between"),
                                         (["--token", "short"], "--token must be at least 8"),
                                         (["--token", "same-token-1", "--viewer-token", "same-token-1"], "must differ"),
-                                        (["--seconds", "-1"], "--seconds must be positive")])
+                                        (["--seconds", "-1"], "--seconds must be positive"),
+                                        (["--board", "no-such-board.toml"], "no such board file")])
 def test_bad_arguments_are_one_line(sim_config, args, said):
     assert_one_line_error(run_rig("console", "-c", sim_config, *args), said)
 

@@ -26,7 +26,7 @@ function tile(cam) {
   el.dataset.camera = cam.name;
   el.dataset.previews = "0";
   el.innerHTML = `<div class="head"><b class="name"></b> <span class="role badge"></span></div>
-    <img alt="">
+    <div class="frame"><img alt=""><canvas class="board-overlay"></canvas></div>
     <canvas class="hist" width="128" height="32"></canvas>
     <div class="figures"><span class="fps"></span><span class="dropped"></span><span class="age"></span><span class="clipped"></span></div>
     <div class="controls">exposure <input type="number" step="any" class="exposure" data-control="exposure"> µs
@@ -40,6 +40,7 @@ function tile(cam) {
   t = { el, url: null, stats: null, previews: 0 };
   state.tiles[cam.name] = t;
   $("img", el).addEventListener("click", () => zoom(cam.name));
+  $(".board-overlay", el).addEventListener("click", () => zoom(cam.name));
   $("button", el).addEventListener("click", () => setControls(cam.name, $(".exposure", el).value, $(".gain", el).value, $(".control-error", el)));
   $(".overlay", el).addEventListener("change", e => {
     const o = new Set(state.prefs.overlay); e.target.checked ? o.add(cam.name) : o.delete(cam.name);
@@ -104,7 +105,7 @@ function onPreview(buf) {
   img.onerror = () => ack(header.camera);
   img.src = url;
   t.stats = header;
-  drawHist($("canvas", t.el), header.histogram);
+  drawHist($(".hist", t.el), header.histogram);
   $(".clipped", t.el).textContent = `clipped ${fmt(100 * header.clipped, 1, " %")}`;
   if (state.zoomed === header.camera) {
     $("#zoom img").src = url;
@@ -142,14 +143,19 @@ function onStatus(s) {
     $(".reported", el).textContent = `camera reports: exposure ${fmt(cam.exposure_us, 0, " µs")}, gain ${fmt(cam.gain, 1, " dB")}`
       + (r.exposure_us ? ` (exposure ${r.exposure_us[0]}–${Math.round(r.exposure_us[1])} µs)` : "") + (cam.live_controls ? "" : " · set at open only");
     if (cam.control_error) $(".control-error", el).textContent = cam.control_error;
+    drawBoard($(".board-overlay", el), cam.board, cam.size);
+    el.dataset.board = cam.board ? (cam.board.still ? "still" : "seen") : "";
   }
   const rec = s.recording, running = ["starting", "recording", "stopping"].includes(rec.state);
-  const operator = s.role === "operator", h0 = s.health;
+  const operator = s.role === "operator", h0 = s.health, cal = s.calibration || {};
   document.querySelectorAll("[data-action]").forEach(b => {
     const a = b.dataset.action;
     if (a === "stop") b.disabled = !operator || rec.state !== "recording";
     else if (a === "doctor") b.disabled = !operator || s.activity !== "previewing" || (h0 && h0.state === "running");
     else if (["record", "sync-check"].includes(a)) b.disabled = !operator || s.activity !== "previewing";
+    else if (a === "calibrate") b.disabled = !operator || s.activity !== "previewing";
+    else if (["capture-view", "calibrate-stop"].includes(a)) b.disabled = !operator || !["starting", "capturing"].includes(cal.state);
+    else if (a === "solve") b.disabled = !operator || !cal.views || cal.state === "solving";
     else if (a === "live-stop") b.disabled = !operator || !s.live || s.live.state !== "running";
     else if (["set-controls", "set-all"].includes(a)) b.disabled = !operator || s.activity === "starting" || s.activity === "idle";
   });
@@ -177,6 +183,7 @@ function onStatus(s) {
     + `<td>${escape(c.name)}</td><td>${escape(c.measured)}</td><td>${escape(c.needed)}</td><td><code>${escape(c.fix || "")}</code></td></tr>`).join("")
     : (h && h.error ? `<tr><td class="error">${escape(h.error)}</td></tr>` : "");
   showLive(s.live || { state: "off" });
+  showCalibration(cal);
   if (!running && rec.take && rec.take !== state.lastTake && rec.state !== "idle") {
     state.lastTake = rec.take;
     api("GET", `api/take-name?after=${encodeURIComponent(rec.take)}`).then(r => { if (!$("#take-name").matches(":focus")) $("#take-name").value = r.take; });
@@ -279,3 +286,52 @@ document.querySelector('[data-action="live"]').addEventListener("click", () => {
 document.querySelector('[data-action="live-stop"]').addEventListener("click", () =>
   api("POST", "api/live/stop").then(refresh).catch(e => { $("#live-error").textContent = e.message; }));
 showTab("rig");
+
+// Calibration: the board found in each still drawn over its tile (green once it is held still),
+// coverage per camera (the 8x6 cells of its image the kept views covered) and per pair of cameras.
+function drawBoard(canvas, board, size) {
+  const g = canvas.getContext("2d");
+  if (!board || !size) { canvas.hidden = true; return; }
+  canvas.hidden = false;
+  if (canvas.width !== size[0] || canvas.height !== size[1]) { canvas.width = size[0]; canvas.height = size[1]; }
+  g.clearRect(0, 0, canvas.width, canvas.height);
+  g.fillStyle = board.still ? "#66bb6a" : "#ffca28";
+  const r = Math.max(1.5, canvas.width / 320);
+  for (const [x, y] of board.points) g.fillRect(x - r, y - r, 2 * r, 2 * r);
+}
+function coverageMap(cells) {
+  const rows = cells.length, cols = rows ? cells[0].length : 0;
+  return `<span class="cells" style="grid-template-columns: repeat(${cols}, 8px)">`
+    + cells.flat().map(c => `<i class="${c ? "on" : ""}"></i>`).join("") + "</span>";
+}
+function showCalibration(c) {
+  document.body.dataset.calibration = c.state || "off";
+  document.body.dataset.calibrationViews = String(c.views || 0);
+  document.body.dataset.calibrationReady = c.ready ? "true" : "false";
+  $("#cal-state").textContent = c.state === "capturing" ? `capturing · ${c.views} views of ${c.looked} sets` : (c.state || "off");
+  if (document.activeElement !== $("#cal-auto")) $("#cal-auto").checked = c.auto !== false;
+  $("#cal-last").textContent = c.last ? `last set: ${c.last}` : (c.board ? `board: ${c.board}` : "no board file: start the console with --board BOARD.toml");
+  $("#cal-error").textContent = c.error || "";
+  $("#cal-ready").innerHTML = c.views === undefined ? "" : (c.ready ? `<b class="ok">coverage passes</b> (the report's limits): solve when you like`
+    : `still needed: <ul>${(c.needs || []).map(n => `<li>${escape(n)}</li>`).join("")}</ul>`);
+  $("#cal-coverage").innerHTML = c.coverage ? Object.entries(c.coverage).map(([n, v]) =>
+    `<div class="cov" data-coverage="${escape(n)}">${coverageMap(c.cells[n])} <b>${escape(n)}</b> ${fmt(100 * v, 0, " %")} · ${c.views_per_camera[n]} views</div>`).join("") : "";
+  $("#cal-pairs").innerHTML = c.pairs && c.pairs.length ? "<tr><th>pair</th><th>views together</th></tr>"
+    + c.pairs.map(p => `<tr><td>${escape(p.a)}–${escape(p.b)}</td><td>${p.views}</td></tr>`).join("") : "";
+  const r = c.result;
+  $("#cal-report").textContent = r ? (r.written ? `wrote ${r.written}` + (r.previous ? ` (the previous calibration kept as ${r.previous})` : "") + "\n\n" : "")
+    + r.report : "";
+  document.body.dataset.calibrationWritten = r && r.written ? r.written : "";
+}
+function calibrationCall(path, body) {
+  $("#cal-error").textContent = "";
+  return api("POST", path, body).then(refresh).catch(e => { $("#cal-error").textContent = e.message; });
+}
+document.querySelector('[data-action="calibrate"]').addEventListener("click", () => calibrationCall("api/calibration/start", { auto: $("#cal-auto").checked }));
+document.querySelector('[data-action="capture-view"]').addEventListener("click", () => calibrationCall("api/calibration/capture"));
+document.querySelector('[data-action="calibrate-stop"]').addEventListener("click", () => calibrationCall("api/calibration/stop"));
+document.querySelector('[data-action="solve"]').addEventListener("click", () => calibrationCall("api/calibration/solve"));
+$("#cal-auto").addEventListener("change", e => {
+  const c = state.status && state.status.calibration;
+  if (c && ["starting", "capturing"].includes(c.state)) calibrationCall("api/calibration/auto", { auto: e.target.checked });
+});
