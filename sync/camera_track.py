@@ -45,6 +45,7 @@ class CameraTrack:
     last_pulse: Optional[int] = None
     last_frame_id: Optional[int] = None  # of the last frame assigned
     last_seen_id: Optional[int] = None  # of the last frame received
+    id_gaps: list = field(default_factory=list)  # the first gaps in frame ids: {"after_id", "next_id", "lost", "host_ts_ns"}
     id_base: Optional[int] = 0  # frame id before the first exposure of this train (None: unknown)
     suspicious: int = 0
     # timed: frames not yet claimed by a set, by host exposure-start time

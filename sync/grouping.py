@@ -36,6 +36,8 @@ from sync.pulse_timeline import BoardClock, PulseTimeline
 
 __all__ = ["HARDWARE", "TIMED", "BoardClock", "CameraCounters", "FrameGrouper"]
 
+MAX_GAPS_KEPT = 100  # frame-id gaps described per camera (all are counted)
+
 
 @dataclass
 class _Slot:
@@ -136,12 +138,15 @@ class FrameGrouper:
         with self._lock:
             self.tracks[name].alive = False
 
-    def camera_back(self, name: str) -> None:
-        """The camera delivers again (a new acquisition: its frame ids start afresh)."""
+    def camera_back(self, name: str, ids_continue: bool = False) -> None:
+        """The camera delivers again. `ids_continue`: its frame ids go on from before (a daemon's
+        camera: the daemon kept counting while the link was down, so a gap is frames lost);
+        otherwise a new acquisition whose ids start afresh."""
         with self._lock:
             track = self.tracks[name]
             track.alive = True
-            track.last_seen_id = None
+            if not ids_continue:
+                track.last_seen_id = None
             track.pending.clear()
 
     def add_frame(self, frame: Frame) -> None:
@@ -151,7 +156,11 @@ class FrameGrouper:
                 raise ValueError(f"frame from unknown camera {frame.camera!r}")
             track.counters.frames += 1
             if track.last_seen_id is not None and frame.frame_id > track.last_seen_id + 1:
-                track.counters.lost_frames += frame.frame_id - track.last_seen_id - 1
+                lost = frame.frame_id - track.last_seen_id - 1
+                track.counters.lost_frames += lost
+                if len(track.id_gaps) < MAX_GAPS_KEPT:
+                    track.id_gaps.append({"after_id": track.last_seen_id, "next_id": frame.frame_id, "lost": lost,
+                                          "host_ts_ns": frame.host_ts_ns})
             track.last_seen_id = frame.frame_id
             if self.reference == frame.camera:
                 self._add_reference(track, frame)
@@ -195,7 +204,7 @@ class FrameGrouper:
             return {
                 "sets": self.emitted,
                 "complete_sets": self.complete,
-                "cameras": {n: t.counters.to_dict() for n, t in self.tracks.items()},
+                "cameras": {n: {**t.counters.to_dict(), "id_gaps": list(t.id_gaps)} for n, t in self.tracks.items()},
                 "skew_us": {
                     "p50": float(np.percentile(skews, 50)) if len(skews) else None,
                     "p99": float(np.percentile(skews, 99)) if len(skews) else None,

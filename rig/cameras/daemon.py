@@ -60,6 +60,8 @@ def open(uri: str, settings):  # noqa: A001 - the backend contract's name
 class DaemonCamera(Camera):
     """What both kinds share: triggers by datagram, frame ids that continue across daemon restarts."""
 
+    IDS_CONTINUE = True  # after a reconnect the ids go on: a gap in them is frames lost (rig.capture.session)
+
     def __init__(self, settings, info: dict[str, Any], trigger_host: str):
         super().__init__(settings.uri, settings)
         self.info = info

@@ -73,6 +73,8 @@ class RecordResult:
     frames: dict[str, int] = field(default_factory=dict)
     delivered: dict[str, int] = field(default_factory=dict)
     drops: dict[str, int] = field(default_factory=dict)
+    lost_in_transfer: dict[str, int] = field(default_factory=dict)  # gaps in the frame ids: exposures that never arrived
+    id_gaps: dict[str, list] = field(default_factory=dict)  # where: {"after_id", "next_id", "lost", "at_s"}
     seconds: float = 0.0
     bytes: int = 0
     cpu_s: float = 0.0
@@ -91,8 +93,10 @@ class RecordResult:
 
     @property
     def frames_lost(self) -> dict[str, int]:
-        """Frames the cameras delivered to the host that are not in the sequence."""
-        return {n: self.delivered.get(n, 0) - self.frames.get(n, 0) for n in self.frames}
+        """Frames the cameras exposed that are not in the sequence: delivered to the host and not
+        written, or never delivered (gaps in the camera's frame ids: a link down, a stalled daemon
+        whose ring was overwritten, a full queue), whatever the cause."""
+        return {n: self.delivered.get(n, 0) - self.frames.get(n, 0) + self.lost_in_transfer.get(n, 0) for n in self.frames}
 
     def to_dict(self) -> dict:
         return {
@@ -101,6 +105,8 @@ class RecordResult:
             "complete_sets": self.complete_sets,
             "frames": self.frames,
             "frames_lost": self.frames_lost,
+            "lost_in_transfer": self.lost_in_transfer,
+            "id_gaps": self.id_gaps,
             "drops": self.drops,
             "seconds": round(self.seconds, 3),
             "sets_per_s": round(self.sets / self.seconds, 3) if self.seconds else 0.0,
@@ -240,9 +246,11 @@ class _TakeClock:
         self.t0 = time.monotonic()
         self.cpu0 = time.process_time()
         self.t_first: Optional[float] = None
+        self.t_first_ns: Optional[int] = None
 
     def first_set(self) -> None:
         self.t_first = time.monotonic()
+        self.t_first_ns = time.monotonic_ns()
         self.cpu0 = time.process_time()
 
     def elapsed(self) -> float:
@@ -326,6 +334,18 @@ def _tally(result: RecordResult, writer: SequenceWriter, clock: _TakeClock, sess
                              f"not written; the index shows them as gaps")
     result.delivered = {n: s.get("delivered", 0) for n, s in session_stats.items()}
     result.drops = {n: s.get("dropped", 0) for n, s in session_stats.items()}
+    result.lost_in_transfer = {n: s.get("lost_frames", 0) for n, s in session_stats.items()}
+    t0 = clock.t_first_ns
+    result.id_gaps = {n: [{"after_id": g["after_id"], "next_id": g["next_id"], "lost": g["lost"],
+                           "at_s": round((g["host_ts_ns"] - t0) / 1e9, 3) if t0 is not None else None} for g in s.get("id_gaps", [])]
+                      for n, s in session_stats.items() if s.get("id_gaps")}
+    lost = {n: k for n, k in result.lost_in_transfer.items() if k}
+    if lost:
+        result.errors.append("frames lost (gaps in the cameras' frame ids: a link down, a stalled daemon or a full queue): " + "; ".join(
+            f"{n} {k}" + (f" (first {result.id_gaps[n][0]['lost']} after frame {result.id_gaps[n][0]['after_id']}"
+                          + (f", {result.id_gaps[n][0]['at_s']:.1f} s into the take" if result.id_gaps[n][0]['at_s'] is not None else "") + ")"
+                          if result.id_gaps.get(n) else "")
+            for n, k in lost.items()))
     if writer.error is not None:
         result.errors.append(str(writer.error))
         result.stopped_by = "storage"

@@ -325,6 +325,7 @@ class RigSession:
                 "missed_triggers": c.get("missed_triggers", 0),
                 "duplicates": c.get("duplicates", 0),
                 "unassigned": c.get("unassigned", 0),
+                "id_gaps": c.get("id_gaps", []),
             }
         return out
 
@@ -376,7 +377,7 @@ class RigSession:
             except Exception:  # noqa: BLE001 - a backend failing to reopen: still lost, try again
                 back = False
             if back and self._running.is_set():
-                self.grouper.camera_back(name)
+                self.grouper.camera_back(name, ids_continue=getattr(cam, "IDS_CONTINUE", False))
                 self._event("camera_back", f"camera {name} is back", {"camera": name})
                 return True
         return False

@@ -139,7 +139,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     # 4. validation
     val = step.validate(take)
     print(f"4/5  validated: {'readable' if val['readable'] else 'NOT readable'}, {val['sets']} sets, "
-          f"skew p99 {val['skew_us'].get('p99', 0):.0f} us, calibrated: {val['calibrated']}")
+          f"exposure skew p99 {_us(val['skew_us'])} (device clocks), arrival spread p99 {_us(val['arrival_spread_us'])}, "
+          f"frames lost {sum(val['frames_lost'].values())}, calibrated: {val['calibrated']}")
 
     # 5. novel views
     _novel_views(take, out, rec["sets"])
@@ -206,3 +207,8 @@ def _novel_views(take: Path, out: Path, sets: int) -> None:
     orbit = step.orbit(take, min(ORBIT_FRAMES, sets), out / "orbit.mp4")
     print(f"     orbit video, left to right over the take: {orbit['output']} ({orbit['frames']} frames, {orbit['codec']}); "
           f"strip (left | t = 0.25, 0.5, 0.75 | right): {strip['file']}")
+
+
+def _us(spread: dict) -> str:
+    """A p99 in microseconds, or "not measured"."""
+    return f"{spread['p99']:.0f} us" if spread.get("p99") is not None else "not measured"

@@ -80,9 +80,15 @@ def _validate(args) -> int:
         print(f"{v.root}: {'readable' if v.readable else 'NOT readable'}; {v.sets} sets ({v.complete_sets} complete), "
               f"{d['duration_s']:.1f} s, gaps {v.gaps}, calibrated: {'yes' if v.calibrated else 'no'}")
         for cam, n in v.frames.items():
-            print(f"  {cam}: {n} frames, {v.missing[cam]} missing")
+            print(f"  {cam}: {n} frames, {v.missing[cam]} missing, {v.frames_lost[cam]} lost (gaps in its frame ids)")
         if v.skew_us:
-            print(f"  skew: p50 {v.skew_us['p50']:.0f} us, p99 {v.skew_us['p99']:.0f} us, max {v.skew_us['max']:.0f} us")
+            print(f"  exposure skew (device clocks against the pulses): p50 {v.skew_us['p50']:.0f} us, "
+                  f"p99 {v.skew_us['p99']:.0f} us, max {v.skew_us['max']:.0f} us")
+        else:
+            print("  exposure skew: not measured (it needs two hardware-triggered cameras, recorded with their trigger mode)")
+        if v.arrival_spread_us:
+            print(f"  arrival spread (when the frames reached this computer, not when they were taken): "
+                  f"p50 {v.arrival_spread_us['p50']:.0f} us, p99 {v.arrival_spread_us['p99']:.0f} us, max {v.arrival_spread_us['max']:.0f} us")
         for w in v.warnings:
             print(f"  warning: {w}")
         for e in v.errors[:20]:

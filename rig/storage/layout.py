@@ -67,6 +67,7 @@ class CameraEntry:
     channels: int  # as stored: 3 (RGB) or 1
     bytes_per_sample: int
     codec: str = "raw"  # raw (netpbm) or png; sequence.json names it only for png (a raw take reads as before)
+    trigger: Optional[str] = None  # hardware, software or free, as recorded (None: a take from before it was kept)
 
     @property
     def frame_bytes(self) -> Optional[int]:
@@ -141,7 +142,8 @@ class SequenceMeta:
 
     def to_dict(self) -> dict[str, Any]:
         d = {"version": FORMAT_VERSION, "rig": self.rig, "rate_hz": self.rate_hz, "created": self.created,
-             "cameras": [{k: v for k, v in c.__dict__.items() if k != "codec" or v != "raw"} for c in self.cameras]}
+             "cameras": [{k: v for k, v in c.__dict__.items() if not (k == "codec" and v == "raw") and not (k == "trigger" and v is None)}
+                         for c in self.cameras]}
         d.update(self.extra)
         return d
 

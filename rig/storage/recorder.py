@@ -77,7 +77,7 @@ class SequenceWriter:
             entries = []
             for c in cameras:
                 ch, bps = stored_layout(c.pixel_format)
-                entries.append(CameraEntry(c.name, c.role, c.width, c.height, c.pixel_format, ch, bps, codec))
+                entries.append(CameraEntry(c.name, c.role, c.width, c.height, c.pixel_format, ch, bps, codec, getattr(c, "trigger", None)))
             self.meta = SequenceMeta(entries, rig_name, rate_hz, _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                                      dict(extra or {}))
             atomic_write_json(self.root / META, self.meta.to_dict())

@@ -1,4 +1,17 @@
-"""`rig record validate`: is every indexed frame whole; count sets, frames, gaps and skew.
+"""`rig record validate`: is every indexed frame whole; count sets, frames, gaps, lost frames and skew.
+
+Lost frames are gaps in a camera's frame ids: exposures the camera made that are not in the take,
+whatever lost them (a link down, a stalled daemon whose ring was overwritten, a full queue). A take
+can miss them with no set missing at all: a gap in every camera at once leaves no set to mark.
+
+Two timing figures, kept apart because they measure different things:
+- exposure skew (`skew_us`): how far apart the cameras' exposures of one set started, by each
+  hardware-triggered camera's own clock against the pulse train (a line fitted per camera from
+  device time to pulse index; the spread of the residuals across cameras). Each clock is fitted on
+  its own, so a constant difference in trigger latency between two cameras does not show: that is
+  a property of the cameras, measured once (`rig sync check` against a flash), not of the take;
+- arrival spread (`arrival_spread_us`): how far apart the set's frames reached the host, which adds
+  transfer and driver delays and says nothing about when the pictures were taken.
 
 `rig record repair` is rig/storage/repair.py.
 """
@@ -25,7 +38,10 @@ class Validation:
     frames: dict[str, int] = field(default_factory=dict)
     missing: dict[str, int] = field(default_factory=dict)
     gaps: int = 0  # trigger indices skipped between consecutive sets
-    skew_us: dict[str, float] = field(default_factory=dict)
+    frames_lost: dict[str, int] = field(default_factory=dict)  # gaps in each camera's frame ids
+    id_gaps: dict[str, list] = field(default_factory=dict)  # each gap: {"set", "after_id", "next_id", "lost"}
+    skew_us: dict[str, float] = field(default_factory=dict)  # exposure skew by the device clocks (hardware-triggered cameras)
+    arrival_spread_us: dict[str, float] = field(default_factory=dict)  # host arrival times
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     torn_tail: bool = False
@@ -48,7 +64,10 @@ class Validation:
             "frames": self.frames,
             "missing": self.missing,
             "gaps": self.gaps,
+            "frames_lost": self.frames_lost,
+            "id_gaps": self.id_gaps,
             "skew_us": self.skew_us,
+            "arrival_spread_us": self.arrival_spread_us,
             "duration_s": round(self.duration_s, 3),
             "torn_tail": self.torn_tail,
             "calibrated": self.calibrated,
@@ -98,7 +117,11 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
         v.errors.append(f"{INDEX}: line {ln} is corrupt")
     v.frames = {c.name: 0 for c in meta.cameras}
     v.missing = {c.name: 0 for c in meta.cameras}
+    v.frames_lost = {c.name: 0 for c in meta.cameras}
+    v.id_gaps = {c.name: [] for c in meta.cameras}
     entries = {c.name: c for c in meta.cameras}
+    last_id: dict[str, int] = {}
+    pulses: dict[str, list] = {c.name: [] for c in meta.cameras if c.trigger == "hardware"}  # (trigger, device ns)
     skews = []
     last_trigger = None
     first_ts = last_ts = None
@@ -126,6 +149,9 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
                 continue
             v.frames[cam] += 1
             ts.append(rec["host_ts_ns"])
+            _follow_ids(v, cam, rec.get("frame_id"), row["set"], last_id)
+            if cam in pulses and row.get("trigger") is not None and rec.get("device_ts_ns") is not None:
+                pulses[cam].append((row["trigger"], rec["device_ts_ns"]))
         if not row_ok and first_bad_set is None:
             first_bad_set = v.sets - 1
         if complete:
@@ -142,8 +168,15 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
             last_trigger = trig
     v.readable_sets = v.sets if first_bad_set is None else first_bad_set
     if skews:
-        s = np.array(skews)
-        v.skew_us = {"p50": float(np.percentile(s, 50)), "p99": float(np.percentile(s, 99)), "max": float(s.max())}
+        v.arrival_spread_us = _spread(np.array(skews))
+    exposure = exposure_skew_us(pulses)
+    if len(exposure):
+        v.skew_us = _spread(exposure)
+    lost = {cam: n for cam, n in v.frames_lost.items() if n}
+    if lost:
+        v.warnings.append("frames lost (gaps in the cameras' frame ids): " + ", ".join(
+            f"{cam} {n} in {len(v.id_gaps[cam])} gap{'s' if len(v.id_gaps[cam]) > 1 else ''} (first after set {v.id_gaps[cam][0]['set']})"
+            for cam, n in lost.items()))
     if first_ts is not None and last_ts is not None:
         v.duration_s = (last_ts - first_ts) / 1e9
     cal = root / CALIBRATION_COPY
@@ -161,3 +194,53 @@ def validate(root: str | Path, check_pixels: bool = False) -> Validation:
     if v.sets == 0:
         v.warnings.append("no frame sets recorded")
     return v
+
+
+def _spread(values: np.ndarray) -> dict[str, float]:
+    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)), "max": float(values.max())}
+
+
+def _follow_ids(v: Validation, cam: str, frame_id, set_number: int, last_id: dict[str, int]) -> None:
+    """Count a forward jump in `cam`'s frame ids as lost frames; a backward one is a camera that
+    started counting again (it reopened), not a loss."""
+    if not isinstance(frame_id, int):
+        return
+    before = last_id.get(cam)
+    if before is not None and frame_id > before + 1:
+        n = frame_id - before - 1
+        v.frames_lost[cam] += n
+        v.id_gaps[cam].append({"set": set_number, "after_id": before, "next_id": frame_id, "lost": n})
+    last_id[cam] = frame_id
+
+
+def exposure_skew_us(pulses: dict[str, list]) -> np.ndarray:
+    """Per set, how far apart the hardware-triggered cameras' exposures started (us), by their own
+    clocks: each camera's device timestamps against the pulse indices they answered, fitted with a
+    line (its clock's offset and rate: two clocks are never compared directly), and the spread of
+    the residuals across the cameras of each pulse. Needs two such cameras with 3 frames each."""
+    residual: dict[str, dict[int, float]] = {}
+    for cam, samples in pulses.items():
+        if len(samples) < 3:
+            continue
+        k = np.array([p for p, _ in samples], dtype=np.float64)
+        t = np.array([d for _, d in samples], dtype=np.float64)
+        if np.ptp(k) == 0:
+            continue
+        t0 = t[0]
+        fit = np.polyfit(k - k[0], t - t0, 1)
+        r = (t - t0) - np.polyval(fit, k - k[0])
+        # a frame far off the line (a misassigned one) must not tilt it: fit again without them
+        mad = float(np.median(np.abs(r - np.median(r))))
+        keep = np.abs(r - np.median(r)) <= max(10.0 * mad, 1000.0)
+        if keep.sum() >= 3 and not keep.all():
+            fit = np.polyfit(k[keep] - k[0], t[keep] - t0, 1)
+            r = (t - t0) - np.polyval(fit, k - k[0])
+        residual[cam] = dict(zip(k.astype(int).tolist(), (r / 1e3).tolist()))
+    if len(residual) < 2:
+        return np.array([])
+    out = []
+    for pulse in sorted(set().union(*residual.values())):
+        vals = [res[pulse] for res in residual.values() if pulse in res]
+        if len(vals) > 1:
+            out.append(max(vals) - min(vals))
+    return np.array(out)

@@ -170,3 +170,23 @@ def test_an_interrupt_writes_the_sets_already_grouped(tmp_path):
     assert result.sets >= 13 and result.frames_lost == {"left": 0, "right": 0}
     v = validate(tmp_path / "seq")
     assert v.readable and v.sets == result.sets and v.frames == result.frames
+
+
+def test_validate_reports_exposure_skew_by_the_device_clocks_apart_from_the_arrival_spread(tmp_path):
+    """Both cameras expose on the same pulses, the right one 3 ms longer: its frames reach the host
+    3 ms later (a frame is sent when its exposure ends). The exposure skew is the exposures' start
+    jitter (20 us each), the 3 ms are arrival spread. Before, validate called the arrival spread "skew"."""
+    seq = tmp_path / "seq"
+    data = sim_rig_config(n_cameras=2, width=160, height=90, fps=30.0)
+    data["sim"]["loop_frames"] = 6
+    for cam, exposure in zip(data["cameras"], (5000.0, 8000.0)):
+        cam["exposure_us"] = exposure
+        cam["sim"].update({"latency_us": 100.0, "jitter_us": 20.0})
+    config = tmp_path / "rig.toml"
+    config.write_text(dump_config(parse_config(data)))
+    assert run_rig("record", "-c", config, "-o", seq, "--sets", 40, "--json").returncode == 0
+    v = validate(seq)
+    assert v.arrival_spread_us["p50"] > 2000, v.arrival_spread_us
+    assert v.skew_us["p99"] < 500, v.skew_us
+    shown = run_rig("record", "validate", seq).stdout
+    assert "exposure skew (device clocks against the pulses)" in shown and "arrival spread" in shown
