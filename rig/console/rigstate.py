@@ -133,7 +133,9 @@ class ConsoleRig:
 
     def event(self, kind: str, detail: str, level: str = "info") -> None:
         with self.lock:
-            self.events.append({"time": time.time(), "kind": kind, "detail": detail, "level": level})
+            # "time" is for the page to show; how recent an event is goes by the monotonic clock,
+            # which a wall-clock step (NTP) does not move
+            self.events.append({"time": time.time(), "mono": time.monotonic(), "kind": kind, "detail": detail, "level": level})
 
     # --- the session tap (rig.capture.tap) ------------------------------------------------------------
     def opened(self, session) -> None:
@@ -476,9 +478,8 @@ class ConsoleRig:
             if rate > 0 and disk["free_bytes"] / rate / 60.0 < self.DISK_LOW_MINUTES:
                 out.append({"kind": "disk", "level": "error",
                             "detail": f"disk nearly full: {disk['free_bytes'] / 1e9:.1f} GB free, {disk['free_bytes'] / rate / 60.0:.1f} minutes of the rig's data"})
-        wall = time.time()
         for e in list(self.events):
-            if e["kind"] in self.FAULT_EVENTS and wall - e["time"] < self.RECENT_S:
+            if e["kind"] in self.FAULT_EVENTS and now - e["mono"] < self.RECENT_S:
                 out.append({"kind": e["kind"], "level": "warn" if e["kind"] in ("camera_back", "board_connected") else "error",
                             "detail": e["detail"], "time": e["time"]})
         from rig.config import calibration_problems

@@ -9,7 +9,7 @@ Server -> browser, binary: one rendered frame = a fixed little-endian header, th
     8      8     set_index    uint64, the frame set the view was rendered from
     16     4     viewpoint_id uint32, the viewpoint it shows (as `Viewer.set_viewpoint` returned)
     20     4     flags        uint32, 0 (reserved)
-    24     8     capture_ns   int64, when the frames were exposed (host clock, time.time_ns() domain)
+    24     8     capture_ns   int64, when the frames were exposed (host monotonic clock, time.monotonic_ns())
     32     ...   JPEG
 
 A reader finds the JPEG at `header_len`, so later versions may append fields to the header without
