@@ -3,7 +3,7 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-APT_PACKAGES := python3 python3-venv python3-dev g++ make pkg-config \
+APT_PACKAGES := python3 python3-venv python3-dev gcc g++ libc6-dev make pkg-config iproute2 \
 	aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev \
 	chromium chromium-driver systemd
 
