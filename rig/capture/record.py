@@ -72,6 +72,7 @@ class RecordResult:
     complete_sets: int = 0
     frames: dict[str, int] = field(default_factory=dict)
     delivered: dict[str, int] = field(default_factory=dict)
+    grouped: dict[str, int] = field(default_factory=dict)  # placed in a set
     drops: dict[str, int] = field(default_factory=dict)
     lost_in_transfer: dict[str, int] = field(default_factory=dict)  # gaps in the frame ids: exposures that never arrived
     id_gaps: dict[str, list] = field(default_factory=dict)  # where: {"after_id", "next_id", "lost", "at_s"}
@@ -93,10 +94,12 @@ class RecordResult:
 
     @property
     def frames_lost(self) -> dict[str, int]:
-        """Frames the cameras exposed that are not in the sequence: delivered to the host and not
-        written, or never delivered (gaps in the camera's frame ids: a link down, a stalled daemon
-        whose ring was overwritten, a full queue), whatever the cause."""
-        return {n: self.delivered.get(n, 0) - self.frames.get(n, 0) + self.lost_in_transfer.get(n, 0) for n in self.frames}
+        """Frames of the take's sets that are not in the sequence: placed in a set and not written
+        (a set skipped, a full disk), or never delivered (gaps in the camera's frame ids: a link
+        down, a stalled daemon whose ring was overwritten, a full queue), whatever the cause.
+        Frames from outside the take's train (a shared board pulses on for other sessions) are not
+        the take's."""
+        return {n: max(0, self.grouped.get(n, 0) - self.frames.get(n, 0)) + self.lost_in_transfer.get(n, 0) for n in self.frames}
 
     def to_dict(self) -> dict:
         return {
@@ -333,6 +336,7 @@ def _tally(result: RecordResult, writer: SequenceWriter, clock: _TakeClock, sess
                              f"CPU is too slow): {result.sets_skipped} sets ({result.frames_skipped} frames) were skipped, "
                              f"not written; the index shows them as gaps")
     result.delivered = {n: s.get("delivered", 0) for n, s in session_stats.items()}
+    result.grouped = {n: s.get("grouped", 0) for n, s in session_stats.items()}
     result.drops = {n: s.get("dropped", 0) for n, s in session_stats.items()}
     result.lost_in_transfer = {n: s.get("lost_frames", 0) for n, s in session_stats.items()}
     t0 = clock.t_first_ns

@@ -440,6 +440,8 @@ class RigSession:
         return flash
 
     def _on_pulse(self, pulse: Pulse) -> None:
+        if self.grouper is None:  # the session is not grouping yet (a shared board's pulses come early)
+            return
         self.grouper.add_pulse(pulse.index, pulse.board_us)
         if not pulse.late:
             self._soft_triggers.put(pulse.index)

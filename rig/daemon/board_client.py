@@ -7,6 +7,11 @@ the last pulse or clock message), so board times map to host times as the owner 
 owner's messages stop for `LOST_S` the board is reported disconnected; when a (restarted) owner
 speaks again, connected again (`reconnect`), and the session restarts its train as it does for a
 board plugged back in.
+
+The board is shared (`rig live` beside `rig record`): `start` holds the daemon's train, joining it if
+another session runs it, and `stop` lets go. This session's train is the pulses from its start on,
+numbered from 0 as a train of its own; a train of N pulses ends here after N (a "done" event made
+here), never for the other sessions.
 """
 from __future__ import annotations
 
@@ -97,13 +102,18 @@ class RemoteBoard:
         self._closed = threading.Event()
         self._done_cv = threading.Condition()
         self._done: Optional[int] = None
+        self._train_lock = threading.Lock()
+        self._holding = False  # between start and stop: pulses are this session's
+        self._first: Optional[int] = None  # the daemon's index of this train's pulse 0
+        self._count = 0  # pulses wanted (0: until stop)
+        self._forwarded = 0
         self._last_message = 0.0
         self._ever = False
         self._owner_fit = False  # a clock fit came from the current owner
         self._thread: Optional[threading.Thread] = None
 
     # --- control -------------------------------------------------------------------------------------
-    def _post(self, path: str, **query) -> None:
+    def _post(self, path: str, **query) -> dict:
         parts = urlsplit(self.info["api"])
         conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=5)
         try:
@@ -116,6 +126,10 @@ class RemoteBoard:
             conn.close()
         if resp.status != 200:
             raise TriggerBoardError(f"trigger board daemon: {json.loads(body or b'{}').get('error', resp.status)}")
+        try:
+            return json.loads(body or b"{}")
+        except ValueError:
+            return {}
 
     def connect(self, timeout: float = 3.0) -> None:
         self._thread = threading.Thread(target=self._listen, name="rig-board-client", daemon=True)
@@ -127,13 +141,67 @@ class RemoteBoard:
         self._post("/rate", rate_hz=rate_hz, pulse_width_us=pulse_width_us)
         self.rate_hz, self.pulse_width_us = rate_hz, pulse_width_us
 
+    @property
+    def session(self) -> int:
+        """This session's name to the daemon: its event port (its hold lapses with its subscription)."""
+        return self._sock.getsockname()[1]
+
     def start(self, count: int = 0) -> None:
         with self._done_cv:
             self._done = None
-        self._post("/start", pulses=int(count))
+        with self._train_lock:
+            self._holding, self._first, self._count, self._forwarded = True, None, int(count), 0
+        try:
+            self._post("/start", session=self.session)
+        except TriggerBoardError:
+            with self._train_lock:
+                self._holding = False
+            raise
 
     def stop(self) -> None:
-        self._post("/stop")
+        with self._train_lock:
+            was = self._holding
+            self._holding = False
+        try:
+            self._post("/stop", session=self.session)
+        finally:
+            if was:
+                self._train_ended("stopped")
+
+    def _train_ended(self, how: str) -> None:
+        """This session's train is over: the "done" its session waits for (the board's own DONE
+        belongs to the daemon's train, which may run on for others)."""
+        pulses = self._forwarded
+        with self._done_cv:
+            self._done = pulses
+            self._done_cv.notify_all()
+        self._emit(BoardEvent("done", f"pulse train {how} after {pulses} pulses", monotonic_ns(), {"pulses": pulses}))
+
+    def _own_pulse(self, pulse: Pulse) -> Optional[Pulse]:
+        """The daemon's pulse as this session's train numbers it, or None when it is not one of ours."""
+        with self._train_lock:
+            if not self._holding:
+                return None
+            if self._first is None:
+                self._first = pulse.index
+            k = pulse.index - self._first
+            if k < 0 or (self._count and k >= self._count):
+                return None
+            self._forwarded = max(self._forwarded, k + 1)
+            last = bool(self._count) and k == self._count - 1
+            if last:
+                self._holding = False
+        own = Pulse(k, pulse.board_us, pulse.received_ns, pulse.late)
+        if last:  # N pulses: this session's train is done; the daemon's goes on for the others
+            threading.Thread(target=self._let_go_after, args=(own,), name="rig-board-release", daemon=True).start()
+        return own
+
+    def _let_go_after(self, pulse: Pulse) -> None:
+        try:
+            self._post("/stop", session=self.session)
+        except TriggerBoardError:
+            pass  # the hold lapses with the subscription
+        self._train_ended("done")
 
     def wait_done(self, timeout: float) -> Optional[int]:
         with self._done_cv:
@@ -180,6 +248,8 @@ class RemoteBoard:
 
     def _owner_changed(self) -> None:
         self._owner_fit = False  # the old fit stays until the new owner's replaces it (readers never see none)
+        with self._train_lock:  # the new owner's pulses count from 0 again: ours once the session starts again
+            self._holding, self._first = False, None
         if self._connected.is_set():
             self._connected.clear()
             self._emit(BoardEvent("disconnected", f"trigger board daemon of rig '{self.rig}' (pid {self.info.get('pid')}) is gone",
@@ -218,15 +288,14 @@ class RemoteBoard:
                                           {"reconnect": True}))
                 self._ever = True
             if msg.get("t") == "pulse":
-                pulse = Pulse(int(msg["index"]), int(msg["board_us"]), int(msg["received_ns"]), bool(msg["late"]))
-                for fn in list(self._pulse_listeners):
-                    fn(pulse)
+                pulse = self._own_pulse(Pulse(int(msg["index"]), int(msg["board_us"]), int(msg["received_ns"]), bool(msg["late"])))
+                if pulse is not None:
+                    for fn in list(self._pulse_listeners):
+                        fn(pulse)
             elif msg.get("t") == "event":
                 event = BoardEvent(str(msg["kind"]), str(msg["detail"]), int(msg["time_ns"]), dict(msg.get("values") or {}))
                 if event.kind == "done":
-                    with self._done_cv:
-                        self._done = int(event.values.get("pulses", 0))
-                        self._done_cv.notify_all()
+                    continue  # the daemon's train: this session's ends here (_train_ended)
                 self._emit(event)  # the owner's board too may go and come back
 
     def _subscribe(self) -> None:

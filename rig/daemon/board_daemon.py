@@ -4,14 +4,22 @@ It opens the rig's trigger board (the serial port, or for a `sim://` trigger its
 pulse output fires the camera daemons' trigger inputs) and relays it to the sessions that use it
 (rig.daemon.board_client.RemoteBoard):
 
-- control, HTTP JSON on loopback: `POST /rate?rate_hz=R&pulse_width_us=W`, `POST /start?pulses=N`,
-  `POST /stop`, `GET /status` (the board's report, its clock model included);
+- control, HTTP JSON on loopback: `POST /rate?rate_hz=R&pulse_width_us=W`, `POST
+  /start?session=S`, `POST /stop?session=S`, `GET /status` (the board's report, its clock model
+  included);
 - pulses, board events and the board clock model's current fit, one JSON datagram each, to every
   session subscribed on its UDP event port (a subscription is renewed every second and lapses after
   five); the clock fit goes out with every pulse and twice a second besides, so a session maps board
   times to host times exactly as the owner's model does.
 
 Its info file (<root>/<rig>/@board.json) carries a heartbeat the supervisor watches.
+
+Several sessions share the board (`rig live` serving while `rig record` writes takes): the board runs
+one pulse train while any session holds it. A session's start is a hold (it joins the train that
+runs, or starts it), its stop a release; the board stops when the last hold goes, also when a
+session dies without releasing (its subscription lapses). A session that wants N pulses counts
+them itself (rig.daemon.board_client), so one session's train never ends another's. A rate other
+than the one the board runs at, while another session holds it, is refused (409).
 """
 from __future__ import annotations
 
@@ -38,6 +46,10 @@ from sync.errors import TriggerBoardError
 from sync.frames import monotonic_ns
 
 SUBSCRIPTION_S = 5.0
+
+
+class _Busy(TriggerBoardError):
+    """The board runs for other sessions at another rate."""
 CLOCK_EVERY_S = 0.5
 
 
@@ -55,6 +67,11 @@ class BoardDaemon:
         self.emulator = None
         self.stop_event = threading.Event()
         self._subs: dict[tuple, float] = {}  # subscriber address -> lapses at (monotonic s)
+        self._holds: set[int] = set()  # sessions holding the pulse train (their event ports)
+        self._running = False
+        # apart from _lock (taken on the board's thread by every relayed pulse): starting or stopping
+        # the board waits for that thread
+        self._hold_lock = threading.Lock()
         self._lock = threading.Lock()
         self._sock: Optional[socket.socket] = None
         self._udp_out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -114,6 +131,49 @@ class BoardDaemon:
                 with self._lock:
                     self._subs.pop(address, None)
 
+    # --- holds on the pulse train ------------------------------------------------------------------------
+    def hold(self, session: int) -> dict:
+        """`session` holds the train: it starts one when none runs, or joins the running one."""
+        with self._hold_lock:
+            joined = self._running
+            if not self._running:
+                self.board.start(0)
+                self._running = True
+            self._holds.add(int(session))
+            return {"ok": True, "joined": joined, "holders": len(self._holds)}
+
+    def release(self, session: int) -> dict:
+        """`session` lets go; the last one to let go stops the board."""
+        with self._hold_lock:
+            self._holds.discard(int(session))
+            stopped = False
+            if self._running and not self._holds:
+                self.board.stop()
+                self._running, stopped = False, True
+            return {"ok": True, "stopped": stopped, "holders": len(self._holds)}
+
+    def _release_lapsed(self) -> None:
+        """A session that died holding the train (its subscription lapsed) lets go of it."""
+        now = time.monotonic()
+        with self._lock:
+            alive = {a[1] for a, until in self._subs.items() if until > now}
+        with self._hold_lock:
+            gone = {h for h in self._holds if h not in alive}
+        for h in gone:
+            try:
+                self.release(h)
+            except TriggerBoardError:
+                pass
+
+    def set_rate(self, rate_hz: float, pulse_width_us: float) -> None:
+        """The board's rate: refused while the train runs for a session at another rate."""
+        with self._hold_lock:
+            if self._running and (abs(self.board.rate_hz - rate_hz) > 1e-9 or abs(self.board.pulse_width_us - pulse_width_us) > 1e-9):
+                raise _Busy(f"the board runs at {self.board.rate_hz:g} Hz ({self.board.pulse_width_us:g} us pulses) for "
+                            f"{len(self._holds)} other session(s); stop them first or use that rate")
+            if not self._running:
+                self.board.set_rate(rate_hz, pulse_width_us)
+
     def _send_clock(self) -> None:
         self._send({"t": "clock", "clock": fit_dict(self.board.clock), "connected": self.board.connected,
                     "rate_hz": self.board.rate_hz, "pulse_width_us": self.board.pulse_width_us})
@@ -153,28 +213,29 @@ class BoardDaemon:
 
         def call(fn, *args):
             try:
-                fn(*args)
+                out = fn(*args)
+            except _Busy as exc:
+                return JSONResponse({"error": str(exc)}, status_code=409)
             except TriggerBoardError as exc:
                 return JSONResponse({"error": str(exc)}, status_code=503)
-            return {"ok": True}
+            return out if isinstance(out, dict) else {"ok": True}
 
         @app.post("/rate")
         def rate(rate_hz: float, pulse_width_us: float):
-            return call(self.board.set_rate, rate_hz, pulse_width_us)
+            return call(self.set_rate, rate_hz, pulse_width_us)
 
         @app.post("/start")
-        def start(pulses: int = 0):
-            if pulses < 0:
-                return JSONResponse({"error": "pulses must be 0 (until stop) or more"}, status_code=400)
-            return call(self.board.start, pulses)
+        def start(session: int):
+            return call(self.hold, session)
 
         @app.post("/stop")
-        def stop():
-            return call(self.board.stop)
+        def stop(session: int):
+            return call(self.release, session)
 
         @app.get("/status")
         def status():
-            return {"report": self.board.report(), "rate_hz": self.board.rate_hz, "pulse_width_us": self.board.pulse_width_us}
+            return {"report": self.board.report(), "rate_hz": self.board.rate_hz, "pulse_width_us": self.board.pulse_width_us,
+                    "running": self._running, "holders": len(self._holds)}
 
         return app
 
@@ -184,6 +245,7 @@ class BoardDaemon:
         watchdog = notify.Watchdog()
         while not self.stop_event.wait(CLOCK_EVERY_S):
             self._send_clock()
+            self._release_lapsed()
             self._publish()  # the heartbeat
             watchdog.tick()
 

@@ -41,8 +41,8 @@ def test_a_recorder_stalled_past_the_daemons_rings_counts_the_gap_as_lost_frames
     assert rec.returncode == 1, err  # frames lost is an error of the take
     lost = summary["frames_lost"]
     for cam in ("left", "right"):
-        # 2.5 s at 30 fps, less the ring's second; frames_lost also counts frames delivered and not
-        # written (those after the take's last set)
+        # 2.5 s at 30 fps, less the ring's second; frames_lost also counts frames placed in sets and
+        # not written
         assert lost[cam] >= summary["lost_in_transfer"][cam] >= 30, summary
         gap = summary["id_gaps"][cam][0]
         assert gap["next_id"] - gap["after_id"] - 1 == gap["lost"] and 1.0 < gap["at_s"] < 5.0, gap
@@ -51,7 +51,9 @@ def test_a_recorder_stalled_past_the_daemons_rings_counts_the_gap_as_lost_frames
     v = validate(take)
     assert v.readable, v.errors
     for cam in ("left", "right"):
-        assert summary["lost_in_transfer"][cam] <= v.frames_lost[cam] <= lost[cam], (v.frames_lost, summary)
+        # the take's gap may be a frame or two wider: a frame that came after the stall but fitted
+        # no set (paired by time) is not in the take either
+        assert summary["lost_in_transfer"][cam] <= v.frames_lost[cam] <= lost[cam] + 3, (v.frames_lost, summary)
     assert any("frames lost" in w for w in v.warnings)
     shown = subprocess.run([sys.executable, "-m", "rig", "record", "validate", str(take)], capture_output=True, text=True, cwd=REPO)
     assert shown.returncode == 0
