@@ -56,6 +56,10 @@ class TwoHosts:
         try:
             for h in ("A", "B"):
                 self._ip("netns", "add", self.ns[h])
+                # IPv4 only: a peer picking the link's IPv6 link-local address (gloo does) cannot reach it without a scope
+                for key in ("all", "default"):
+                    subprocess.run(["ip", "netns", "exec", self.ns[h], "sysctl", "-qw", f"net.ipv6.conf.{key}.disable_ipv6=1"],
+                                   capture_output=True)
             self._ip("link", "add", self.dev["A"], "type", "veth", "peer", "name", self.dev["B"])
             for h in ("A", "B"):
                 self._ip("link", "set", self.dev[h], "netns", self.ns[h])
