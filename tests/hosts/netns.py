@@ -88,6 +88,13 @@ class TwoHosts:
                     p.wait(10)
                 except subprocess.TimeoutExpired:
                     pass
+        for h in ("A", "B"):  # whatever else runs in the namespaces (torchrun's workers leave its process group)
+            pids = subprocess.run(["ip", "netns", "pids", self.ns[h]], capture_output=True, text=True).stdout.split()
+            for pid in pids:
+                try:
+                    os.kill(int(pid), signal.SIGKILL)
+                except (OSError, ValueError):
+                    pass
         for h in ("A", "B"):
             subprocess.run(["ip", "netns", "del", self.ns[h]], capture_output=True)  # takes its end of the veth along
 
