@@ -146,13 +146,8 @@ class ConsoleCalibration:
                     images, found = cap.grab(GRAB_TIMEOUT_S)
                     self._one_set(cap, images, found)
             self.state = "off"
-        except ReportedError as exc:
-            self.state, self.error = "failed", str(exc)
-            rig.event("calibration", f"calibration capture failed: {exc}", "error")
         except Exception as exc:
-            log.exception("console calibration")
-            self.state, self.error = "failed", f"{type(exc).__name__}: {exc}"
-            rig.event("calibration", f"calibration capture failed: {exc}", "error")
+            self._failed("calibration capture", exc)
         finally:
             for v in rig.views.values():
                 v.board = None
@@ -290,13 +285,19 @@ class ConsoleCalibration:
                            "written": str(target), "previous": str(kept) if kept else None}
             self.state = "done"
             rig.event("calibration", f"calibration written to {target}" + (f" (the previous one kept as {kept.name})" if kept else ""))
-        except ReportedError as exc:
-            self.state, self.error = "failed", str(exc)
-            rig.event("calibration", f"solve failed: {exc}", "error")
         except Exception as exc:
-            log.exception("console solve")
-            self.state, self.error = "failed", f"{type(exc).__name__}: {exc}"
-            rig.event("calibration", f"solve failed: {exc}", "error")
+            self._failed("solve", exc)
+
+    def _failed(self, what: str, exc: Exception) -> None:
+        """The work stopped: its one line on the panel and in the events (a bug is logged whole, and
+        does not take the console with it)."""
+        if isinstance(exc, ReportedError):
+            self.error = str(exc)
+        else:
+            log.exception("console %s", what)
+            self.error = f"{type(exc).__name__}: {exc}"
+        self.state = "failed"
+        self.rig.event("calibration", f"{what} failed: {self.error}", "error")
 
     @staticmethod
     def _keep_previous(target: Path) -> Optional[Path]:

@@ -205,28 +205,25 @@ def create_app(rig, operator_token: Optional[str] = None, viewer_token: Optional
     async def live_stop():
         return await guarded(rig.live.stop)
 
-    def _auto(data: dict) -> bool:
-        _only(data, {"auto"})
-        auto = data.get("auto", True)
-        if not isinstance(auto, bool):
-            raise ConfigError(f"auto must be true or false, got {str(auto)[:20]!r}")
-        return auto
+    async def with_auto(request: Request, fn):
+        """`fn(auto)` with the body's {"auto": bool} (default true), checked first."""
+        try:
+            data = await _body(request)
+            _only(data, {"auto"})
+            auto = data.get("auto", True)
+            if not isinstance(auto, bool):
+                raise ConfigError(f"auto must be true or false, got {str(auto)[:20]!r}")
+        except ConfigError as exc:
+            return _bad(str(exc))
+        return await guarded(fn, auto)
 
     @app.post("/api/calibration/start")
     async def calibration_start(request: Request):
-        try:
-            auto = _auto(await _body(request))
-        except ConfigError as exc:
-            return _bad(str(exc))
-        return await guarded(rig.calibration.start, auto)
+        return await with_auto(request, rig.calibration.start)
 
     @app.post("/api/calibration/auto")
     async def calibration_auto(request: Request):
-        try:
-            auto = _auto(await _body(request))
-        except ConfigError as exc:
-            return _bad(str(exc))
-        return await guarded(rig.calibration.set_auto, auto)
+        return await with_auto(request, rig.calibration.set_auto)
 
     @app.post("/api/calibration/capture")
     async def calibration_capture():

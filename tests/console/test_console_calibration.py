@@ -11,8 +11,8 @@ import urllib.request
 
 import pytest
 
-from tests.console.test_console_browser import data, wait_until
-from tests.live.test_browser import CHROMEDRIVER, CHROMIUM, new_driver
+from tests.console.test_console_browser import data, driver, wait_until  # noqa: F401 (driver: a fixture)
+from tests.live.test_browser import CHROMEDRIVER, CHROMIUM
 
 pytestmark = [
     pytest.mark.skipif(not CHROMIUM.exists() or not CHROMEDRIVER.exists(),
@@ -51,15 +51,6 @@ def console(rig_config):
     finally:
         server.stop()
         rig.close()
-
-
-@pytest.fixture(scope="module")
-def driver():
-    d = new_driver()
-    try:
-        yield d
-    finally:
-        d.quit()
 
 
 def post(server, path: str, body: dict | None = None):
