@@ -15,7 +15,8 @@ def register(sub) -> None:
     p = sub.add_parser("console", help="serve the crew's console: camera tiles, exposure and gain, takes (docs/console.md)",
                        description="Run the rig and serve its console at http://HOST:PORT/: a tile per camera (preview, fps, "
                                    "drops, exposure and gain set live), takes recorded with rig record's own recorder, notes, "
-                                   "and the list of takes. In-process or attached to the daemons of `rig up`. Loopback by "
+                                   "and the list of takes, the trigger board and a sync check, calibration views and rig "
+                                   "calibrate run's solve, a Live tab with rig live's view, the host's checks. In-process or attached to the daemons of `rig up`. Loopback by "
                                    "default; any other address needs an operator token (generated and printed if not given); "
                                    "a viewer token may watch only.")
     p.add_argument("-c", "--config", type=Path, required=True, help="rig configuration (TOML)")
