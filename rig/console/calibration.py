@@ -57,6 +57,7 @@ class ConsoleCalibration:
         self.folder: Optional[Path] = None
         self.capture_obj = None  # the ViewCapture running or last run
         self.last: Optional[str] = None  # what became of the last set
+        self.decision: Optional[str] = None  # what became of the last view considered (kept or not); stays until the next
         self.still = False
         self.result: Optional[dict] = None  # the last solve's report, verdicts and warnings
         self._stop = threading.Event()
@@ -95,7 +96,7 @@ class ConsoleCalibration:
             while folder.exists():
                 k += 1
                 folder = Path(self.rig.storage) / f"calibration-{stamp}-{k}"
-            self.folder, self.auto, self.error, self.result, self.last, self.still = folder, auto, None, None, None, False
+            self.folder, self.auto, self.error, self.result, self.last, self.decision, self.still = folder, auto, None, None, None, None, False
             self.state = "starting"
             self.rig.activity = "calibrating"
             self._stop.clear()
@@ -175,10 +176,11 @@ class ConsoleCalibration:
 
     def _kept(self, verdict, how: str) -> None:
         if verdict.keep:
-            self.last = f"view {len(self.capture_obj.kept) - 1:04d} kept ({how}): {verdict.reason}"
-            self.rig.event("calibration", self.last)
+            self.decision = f"view {len(self.capture_obj.kept) - 1:04d} kept ({how}): {verdict.reason}"
+            self.rig.event("calibration", self.decision)
         else:
-            self.last = f"not kept ({how}): {verdict.reason}"
+            self.decision = f"not kept ({how}): {verdict.reason}"
+        self.last = self.decision
 
     @staticmethod
     def _drawn(corners, still: bool) -> Optional[dict]:
@@ -226,7 +228,7 @@ class ConsoleCalibration:
     def status(self) -> dict:
         cap = self.capture_obj
         s = {"state": self.state, "auto": self.auto, "error": self.error, "board": str(self.board_file) if self.board_file else None,
-             "folder": str(self.folder) if self.folder else None, "last": self.last, "still": self.still, "result": self.result,
+             "folder": str(self.folder) if self.folder else None, "last": self.last, "decision": self.decision, "still": self.still, "result": self.result,
              "output": str(self._output()) if self.rig.cfg.calibration else None}
         if cap is not None:
             sel = cap.selector

@@ -95,7 +95,10 @@ def test_views_are_captured_until_coverage_passes_and_solve_writes_the_calibrati
     assert rig.calibration.capture_obj.kept == []  # nothing is kept by itself with automatic keeping off
     click(driver, "capture-view")
     wait_until(lambda: data(driver, "body", "calibrationViews") == "1", 60, "a view kept by hand")
-    assert "by hand" in rig.calibration.last
+    # the decision stays shown after later sets ("waiting for the board to be still") replace the last set's line
+    assert "kept (by hand)" in rig.calibration.decision
+    wait_until(lambda: "last view: view 0000 kept (by hand)" in driver.find_element("css selector", "#cal-last").text
+               or "last set: view 0000 kept (by hand)" in driver.find_element("css selector", "#cal-last").text, 10, "the kept view shown")
     # other work is refused while the calibration holds the cameras
     with pytest.raises(urllib.error.HTTPError) as err:
         post(server, "api/record/start", {})

@@ -310,7 +310,8 @@ function showCalibration(c) {
   document.body.dataset.calibrationReady = c.ready ? "true" : "false";
   $("#cal-state").textContent = c.state === "capturing" ? `capturing · ${c.views} views of ${c.looked} sets` : (c.state || "off");
   if (document.activeElement !== $("#cal-auto")) $("#cal-auto").checked = c.auto !== false;
-  $("#cal-last").textContent = c.last ? `last set: ${c.last}` : (c.board ? `board: ${c.board}` : "no board file: start the console with --board BOARD.toml");
+  $("#cal-last").textContent = c.last ? `last set: ${c.last}` + (c.decision && c.decision !== c.last ? ` · last view: ${c.decision}` : "")
+    : (c.board ? `board: ${c.board}` : "no board file: start the console with --board BOARD.toml");
   $("#cal-error").textContent = c.error || "";
   $("#cal-ready").innerHTML = c.views === undefined ? "" : (c.ready ? `<b class="ok">coverage passes</b> (the report's limits): solve when you like`
     : `still needed: <ul>${(c.needs || []).map(n => `<li>${escape(n)}</li>`).join("")}</ul>`);
