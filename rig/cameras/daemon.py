@@ -9,6 +9,8 @@ spends on purpose; `rig discover` stays quick.
 """
 from __future__ import annotations
 
+import hashlib
+import hmac
 import http.client
 import json
 import queue
@@ -30,6 +32,27 @@ SCHEME = "daemon"
 MDNS_TIMEOUT_S = 3.0
 # A daemon camera's trigger input (rig.daemon.camera_daemon): one datagram per trigger.
 TRIGGER = struct.Struct("<cqq")  # kind (b"S" | b"H"), pulse index, host time ns
+# From another host (the daemon's network trigger input, `network_trigger_port`), a trigger carries a
+# tag keyed by the daemon's token after it: a datagram cannot carry the HTTP API's bearer token, and
+# a camera on a LAN must not fire for anyone who can send to its port.
+TAG_BYTES = 16
+
+
+def trigger_tag(token: str, payload: bytes) -> bytes:
+    """The tag a networked trigger datagram ends with: HMAC-SHA256 of the payload, keyed by the token."""
+    return hmac.new(token.encode(), payload, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+def signed(token: str, payload: bytes) -> bytes:
+    return payload + trigger_tag(token, payload)
+
+
+def verify(token: str, data: bytes) -> Optional[bytes]:
+    """The payload of a signed datagram, or None when its tag is not the token's."""
+    if len(data) <= TAG_BYTES:
+        return None
+    payload, tag = data[:-TAG_BYTES], data[-TAG_BYTES:]
+    return payload if hmac.compare_digest(tag, trigger_tag(token, payload)) else None
 
 
 def discover() -> list[DeviceInfo]:
@@ -54,7 +77,10 @@ def _api_url(uri: str) -> tuple[str, str | None]:
 
 def open(uri: str, settings):  # noqa: A001 - the backend contract's name
     url, token = _api_url(uri)
-    return RemoteDaemonCamera(settings, url, token)
+    cam = RemoteDaemonCamera(settings, url, token)
+    if urlsplit(uri).port is None:  # found by mDNS: a restarted daemon is found there again, at its new port
+        cam.locate = lambda: _api_url(uri)[0]
+    return cam
 
 
 class DaemonCamera(Camera):
@@ -62,20 +88,24 @@ class DaemonCamera(Camera):
 
     IDS_CONTINUE = True  # after a reconnect the ids go on: a gap in them is frames lost (rig.capture.session)
 
-    def __init__(self, settings, info: dict[str, Any], trigger_host: str):
+    def __init__(self, settings, info: dict[str, Any], trigger_host: str, token: Optional[str] = None):
         super().__init__(settings.uri, settings)
         self.info = info
         self._trigger_host = trigger_host
+        self._token = token
         self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._id_base = 0  # added to the daemon's frame ids: a restarted daemon counts from 1 again
         self._closed = False
 
     def _send(self, kind: bytes, pulse: int = 0, host_ns: int = 0) -> None:
+        payload = TRIGGER.pack(kind, int(pulse), int(host_ns))
         port = self.info.get("trigger_port")
+        if self._token and self.info.get("network_trigger_port"):  # a daemon on another host: its network input
+            port, payload = self.info["network_trigger_port"], signed(self._token, payload)
         if not port or self._closed:
             return
         try:
-            self._udp.sendto(TRIGGER.pack(kind, int(pulse), int(host_ns)), (self._trigger_host, int(port)))
+            self._udp.sendto(payload, (self._trigger_host, int(port)))
         except OSError:
             pass  # the daemon is gone: its frame loop reports it
 
@@ -115,8 +145,9 @@ class RemoteDaemonCamera(DaemonCamera):
         if parts.scheme != "http" or not parts.hostname or not parts.port:
             raise DeviceError(f"{settings.name}: {api_url!r} is not a daemon API address (http://HOST:PORT)")
         self.api_url = api_url
+        self.locate = None  # () -> the daemon's API address now, where it can move (found by mDNS)
         self._headers = {"Authorization": f"Bearer {token}"} if token else {}
-        super().__init__(settings, {}, parts.hostname)
+        super().__init__(settings, {}, parts.hostname, token)
         self.info = self._get_json("/status")
         self._out: queue.Queue = queue.Queue(maxsize=self.QUEUE_FRAMES)
         self._running = threading.Event()
@@ -197,7 +228,13 @@ class RemoteDaemonCamera(DaemonCamera):
         try:
             self.info = self._get_json("/status")
         except DeviceError:
-            return False
+            if self.locate is None:
+                return False
+            try:  # the daemon may be back elsewhere (a new port after a restart)
+                self.api_url = self.locate()
+                self.info = self._get_json("/status")
+            except (DeviceError, ConfigError):
+                return False
         self.stop()
         self._last_seq = -1
         self._restarted()

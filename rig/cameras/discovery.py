@@ -181,11 +181,16 @@ def advertise(info: DaemonInfo, *, interfaces=None, wait: bool = True) -> Advert
     """
     from zeroconf import ServiceInfo
 
-    host_label = _label(socket.gethostname().split(".")[0], 63) or "rig-host"
+    addresses = _addresses(info.host, interfaces)
+    # The server name carries the first address: hosts that share a name (two boxes left at the
+    # image's default hostname, or network namespaces on one machine) would otherwise publish one
+    # server name, and a browser would merge their addresses and reach one host for both.
+    host_label = _label(socket.gethostname().split(".")[0], 40) or "rig-host"
+    where = _label(addresses[0].replace(".", "-").replace(":", "-"), 22) if addresses else ""
     service = ServiceInfo(
         SERVICE_TYPE, f"{instance_name(info.rig, info.camera)}.{SERVICE_TYPE}", port=int(info.port),
-        properties=_properties(info), server=f"{host_label}.local.",
-        parsed_addresses=_addresses(info.host, interfaces))
+        properties=_properties(info), server=f"{host_label}{'-' + where if where else ''}.local.",
+        parsed_addresses=addresses)
     adv = Advertisement(_zeroconf(interfaces), service)
     try:
         adv._start(allow_name_change=True)

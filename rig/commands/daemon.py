@@ -38,6 +38,10 @@ def register(sub) -> None:
     u.add_argument("--json", action="store_true", help="with --status: one JSON object")
     u.add_argument("--no-advertise", action="store_true", help="the daemons do not advertise on mDNS")
     u.add_argument("--interface", action="append", metavar="ADDR", help="the daemons advertise on this interface address only (repeatable)")
+    u.add_argument("--cameras", metavar="NAMES", help="only these cameras' daemons, comma-separated, '@board' for the trigger board's: "
+                                                      "this host's part of a rig whose cameras hang on several hosts")
+    u.add_argument("--host", help="the daemons' APIs listen on this address, for other hosts (needs --token)")
+    u.add_argument("--token", help="the token every daemon's API (and networked trigger input) requires, the same on every host of the rig")
     u.set_defaults(func=cmd_up)
 
     dn = sub.add_parser("down", help="stop the rig's supervisor and its daemons")
@@ -63,14 +67,14 @@ def cmd_daemon(args: argparse.Namespace) -> int:
     if args.board == (args.camera is not None):
         raise ConfigError("name one CAMERA, or give --board for the trigger board's daemon")
     cfg = load_config(args.config, check_calibration=False)
-    if args.board:
-        return _board_daemon(cfg)
-    if args.camera not in [c.name for c in cfg.cameras]:
+    if not args.board and args.camera not in [c.name for c in cfg.cameras]:
         raise ConfigError(f"{args.config}: no camera named {args.camera!r} (cameras: {', '.join(c.name for c in cfg.cameras)})")
     token = args.token
     if token is None and not is_loopback_name(args.host):
         token = secrets.token_urlsafe(24)
-        print(f"rig daemon {args.camera}: API token {token}", file=sys.stderr, flush=True)
+        print(f"rig daemon {args.camera or '--board'}: API token {token}", file=sys.stderr, flush=True)
+    if args.board:
+        return _board_daemon(cfg, args, token)
     daemon = CameraDaemon(cfg, args.camera, host=args.host, port=args.port, token=token, advertise=not args.no_advertise,
                           interfaces=args.interface, slots=args.slots)
     _stop_on_signals(daemon.stop_event)
@@ -83,14 +87,15 @@ def cmd_daemon(args: argparse.Namespace) -> int:
     return 0
 
 
-def _board_daemon(cfg) -> int:
+def _board_daemon(cfg, args: argparse.Namespace, token) -> int:
     from rig.daemon.board_daemon import BoardDaemon
 
-    daemon = BoardDaemon(cfg)
+    daemon = BoardDaemon(cfg, host=args.host, port=args.port, token=token, advertise=not args.no_advertise, interfaces=args.interface)
     _stop_on_signals(daemon.stop_event)
     try:
         daemon.open()
-        print(f"rig daemon --board: trigger board {cfg.trigger.uri}, API {daemon.api.url}", file=sys.stderr, flush=True)
+        api = daemon.api.url + (f" and {daemon.net_api.url} (with the token)" if daemon.net_api else "")
+        print(f"rig daemon --board: trigger board {cfg.trigger.uri}, API {api}", file=sys.stderr, flush=True)
         daemon.run()
     finally:
         daemon.close()
@@ -122,11 +127,30 @@ def cmd_up(args: argparse.Namespace) -> int:
     if running:
         raise DeviceError(f"rig '{cfg.name}': a supervisor already runs (pid {state['pid']}); `rig down -c {args.config}` stops it")
     daemon_args = ["--no-advertise"] if args.no_advertise else [a for addr in args.interface or () for a in ("--interface", addr)]
+    if args.host is not None:
+        if not args.token:
+            raise ConfigError("--host: daemons that other hosts reach need --token (the same on every host of the rig)")
+        daemon_args += ["--host", args.host]
+    if args.token:
+        daemon_args += ["--token", args.token]
+    only = None
+    if args.cameras is not None:
+        from rig.daemon.supervisor import BOARD
+
+        only = {n.strip() for n in args.cameras.split(",") if n.strip()}
+        known = [c.name for c in cfg.cameras] + ([BOARD] if cfg.trigger is not None else [])
+        unknown = sorted(only - set(known))
+        if unknown or not only:
+            raise ConfigError(f"--cameras {args.cameras}: " + (f"no camera named {', '.join(unknown)}" if unknown else "name at least one")
+                              + f" (this rig has: {', '.join(known)})")
     sup = Supervisor(cfg, args.config, stale_s=args.stale, daemon_args=tuple(daemon_args),
-                     say=lambda line: print(f"rig up: {line}", flush=True))
+                     say=lambda line: print(f"rig up: {line}", flush=True), only=only)
     _stop_on_signals(sup.stop_event)
-    board = " and its trigger board's" if cfg.trigger is not None else ""
-    print(f"rig up: starting {len(cfg.cameras)} camera daemons{board} of rig '{cfg.name}' ({', '.join(c.name for c in cfg.cameras)})", flush=True)
+    from rig.daemon.supervisor import BOARD
+
+    names = [n for n in sup.children if n != BOARD]
+    board = " and its trigger board's" if BOARD in sup.children else ""
+    print(f"rig up: starting {len(names)} camera daemons{board} of rig '{cfg.name}' ({', '.join(names)})", flush=True)
     sup.run()
     print(json.dumps({"restarts": {c.camera: c.restarts for c in sup.children.values()}}), flush=True)
     return 0

@@ -41,9 +41,13 @@ def board_daemon(rig: str) -> Optional[dict[str, Any]]:
 
 
 def open_board(config, inputs: dict[str, Callable[[int, int], None]]):
-    """The rig's trigger board through its daemon when one owns it on this host, else opened in this
-    process by its backend (rig.boards), with the cameras of `inputs` opened here too; the board and
-    the device behind it to close after it (None through a daemon)."""
+    """The rig's trigger board through its daemon: the one on another host that the trigger URI names
+    (`daemon://HOST:PORT?token=T`, `daemon://RIG/@board?token=T` by mDNS), or the one that owns it on
+    this host; else opened in this process by its backend (rig.boards), with the cameras of `inputs`
+    opened here too. Returns the board and the device behind it to close after it (None through a
+    daemon)."""
+    if config.trigger.uri.startswith("daemon://"):
+        return NetworkBoard(config.name, config.trigger.uri), None
     owner = board_daemon(config.name)
     if owner is not None:
         return RemoteBoard(config.name, owner), None
@@ -86,6 +90,11 @@ class MirrorClock:
 
 
 class RemoteBoard:
+    """The board through its daemon on this host (found by its info file)."""
+
+    BIND = "127.0.0.1"
+    HEADERS: dict[str, str] = {}
+
     def __init__(self, rig: str, info: dict[str, Any]):
         self.rig = rig
         self.info = info
@@ -96,7 +105,7 @@ class RemoteBoard:
         self._pulse_listeners: list[Callable[[Pulse], None]] = []
         self._event_listeners: list[Callable[[BoardEvent], None]] = []
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind(("127.0.0.1", 0))
+        self._sock.bind((self.BIND, 0))
         self._sock.settimeout(0.1)
         self._connected = threading.Event()
         self._closed = threading.Event()
@@ -117,7 +126,7 @@ class RemoteBoard:
         parts = urlsplit(self.info["api"])
         conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=5)
         try:
-            conn.request("POST", f"{path}?{urlencode(query)}" if query else path)
+            conn.request("POST", f"{path}?{urlencode(query)}" if query else path, headers=self.HEADERS)
             resp = conn.getresponse()
             body = resp.read()
         except (OSError, http.client.HTTPException) as exc:
@@ -233,10 +242,7 @@ class RemoteBoard:
         if self._closed.is_set():
             return
         self._closed.set()
-        try:
-            self._sock.sendto(b"UNSUB", ("127.0.0.1", int(self.info["event_port"])))
-        except OSError:
-            pass
+        self._datagram(b"UNSUB")
         if self._thread is not None:
             self._thread.join(2)
         self._sock.close()
@@ -271,7 +277,7 @@ class RemoteBoard:
                 continue
             except OSError:
                 return
-            if source[1] != int(self.info["event_port"]):
+            if source != self._owner_address():
                 continue  # a message the old owner sent before it went
             try:
                 msg = json.loads(data)
@@ -304,12 +310,79 @@ class RemoteBoard:
         restarted it: its board has a train of its own to start and a clock of its own (the old fit
         maps another board's times), so the old owner is reported lost and the new one is heard only
         once its own clock fit arrives."""
-        info = board_daemon(self.rig)
+        info = self._locate()
         if info is not None:
             if info.get("pid") != self.info.get("pid"):
                 self._owner_changed()
             self.info = info
+        self._datagram(b"SUB")
+
+    def _locate(self) -> Optional[dict[str, Any]]:
+        """The daemon that owns the board now."""
+        return board_daemon(self.rig)
+
+    def _owner_address(self) -> tuple:
+        return ("127.0.0.1", int(self.info["event_port"]))
+
+    def _datagram(self, data: bytes) -> None:
         try:
-            self._sock.sendto(b"SUB", ("127.0.0.1", int(self.info["event_port"])))
-        except OSError:
+            self._sock.sendto(data, self._owner_address())
+        except (OSError, KeyError, TypeError, ValueError):
             pass
+
+
+class NetworkBoard(RemoteBoard):
+    """The board through its daemon on another host: `daemon://HOST:PORT?token=T` (its network API) or
+    `daemon://RIG/@board?token=T` (found by mDNS). Control requests carry the token; pulses, events
+    and the clock come to this session's event port from the daemon's network event port, and the
+    subscription carries the token's tag (rig.cameras.daemon.signed).
+
+    The board's clock model maps board times to the owner host's monotonic clock: across machines,
+    that host's clock and this one must be the same clock (one machine's network namespaces) or
+    aligned (PTP), as docs/daemons.md says."""
+
+    BIND = "0.0.0.0"
+
+    def __init__(self, rig: str, uri: str):
+        from rig.cameras.daemon import _api_url
+
+        parts = urlsplit(uri)
+        self.board_uri = uri
+        self._by_mdns = parts.port is None
+        try:
+            self.api_url, self.token = _api_url(uri)
+        except Exception as exc:  # not found on mDNS, a bad address: the one line the session reports
+            raise TriggerBoardError(str(exc)) from None
+        if not self.token:
+            raise TriggerBoardError(f"{uri}: a board daemon on another host needs its token (?token=T)")
+        self.HEADERS = {"Authorization": f"Bearer {self.token}"}
+        info = self._locate()
+        if info is None:
+            raise TriggerBoardError(f"{uri}: the trigger board daemon at {self.api_url} does not answer")
+        super().__init__(rig, info)
+        self.uri = f"{uri.split('?')[0]} (through its daemon on another host, pid {info.get('pid')})"
+
+    def _locate(self) -> Optional[dict[str, Any]]:
+        from rig.daemon.board_daemon import _get_status
+
+        status = _get_status(self.api_url, self.token)
+        if status is None and self._by_mdns:  # a restarted owner may listen elsewhere: ask mDNS again
+            from rig.cameras.daemon import _api_url
+
+            try:
+                self.api_url, _ = _api_url(self.board_uri)
+            except Exception:  # noqa: BLE001 - not there now: asked again at the next renewal
+                return None
+            status = _get_status(self.api_url, self.token)
+        if not status or not status.get("network_event_port"):
+            return None
+        return {"pid": status.get("pid"), "uri": status.get("uri"), "api": self.api_url, "event_port": int(status["network_event_port"]),
+                "host": urlsplit(self.api_url).hostname}
+
+    def _owner_address(self) -> tuple:
+        return (self.info["host"], int(self.info["event_port"]))
+
+    def _datagram(self, data: bytes) -> None:
+        from rig.cameras.daemon import signed
+
+        super()._datagram(signed(self.token, data))

@@ -13,6 +13,9 @@ the daemon itself stays up. Beside the ring:
   same socket takes readers' doorbell subscriptions (b"W", renewed every second, lapsing after 5 s):
   as it begins to copy each frame into the ring, the daemon sends each subscriber one byte, so a
   reader blocked on its socket wakes while the frame is copied instead of polling the ring;
+  a daemon whose API listens beyond loopback (with a token) has a second trigger input on that address
+  (`network_trigger_port`), which takes only triggers tagged with the token (rig.cameras.daemon.signed):
+  the emulated wire from a trigger board on another host;
 - its info file (rig.daemon.paths), written once all of that serves, removed at a clean exit;
 - an mDNS advertisement (`_rigcam._tcp.local.`, rig.cameras.discovery), unless disabled;
 - sd_notify READY once the camera acquires and WATCHDOG from the acquisition loop (rig.daemon.notify),
@@ -39,12 +42,14 @@ import numpy as np
 
 from common.files import atomic_write_json
 from rig.cameras import open_camera
-from rig.cameras.daemon import TRIGGER
+from rig.cameras.daemon import TRIGGER, verify
 from rig.config import RigConfig
 from rig.daemon import paths
 from rig.daemon.ring import FrameRing, RingError
 from rig.errors import CameraDisconnected, CameraTimeout, ConfigError, DeviceError
 from sync.frames import monotonic_ns
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 WATCH_S = 5.0  # a doorbell subscription lapses unless renewed
 # A reader may fall behind (a busy host: a session's threads wait for the GIL, its disk for writes): the
@@ -95,6 +100,7 @@ class CameraDaemon:
         self.last_frame_ns = 0
         self._recent: collections.deque = collections.deque(maxlen=64)  # host times of the last frames: fps
         self._trigger_sock: Optional[socket.socket] = None
+        self._net_trigger_sock: Optional[socket.socket] = None
         self._watchers: dict[tuple, float] = {}  # doorbell subscribers -> lapse time (monotonic s)
         self.api = None
         self._advert = None
@@ -114,6 +120,7 @@ class CameraDaemon:
             "last_frame_age_s": None if not self.last_frame_ns else round((now - self.last_frame_ns) / 1e9, 3),
             "uptime_s": round((now - self.started_ns) / 1e9, 3), "ring": str(self.ring.path) if self.ring else None,
             "slots": self.slots, "trigger": self.cfg.trigger, "trigger_port": self.trigger_port,
+            "network_trigger_port": self.network_trigger_port,
             "camera_stats": cam.stats.to_dict() if cam is not None else {}, "counters": dict(self.counters),
             "events": list(self.events)[-10:],
         }
@@ -180,6 +187,10 @@ class CameraDaemon:
     def trigger_port(self) -> Optional[int]:
         return self._trigger_sock.getsockname()[1] if self._trigger_sock else None
 
+    @property
+    def network_trigger_port(self) -> Optional[int]:
+        return self._net_trigger_sock.getsockname()[1] if self._net_trigger_sock else None
+
     # --- lifecycle ---------------------------------------------------------------------------------
     @contextlib.contextmanager
     def _busy(self):
@@ -230,7 +241,12 @@ class CameraDaemon:
         self._trigger_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._trigger_sock.bind(("127.0.0.1", 0))
         self._trigger_sock.settimeout(0.2)
-        threading.Thread(target=self._trigger_loop, name="rig-daemon-trigger", daemon=True).start()
+        threading.Thread(target=self._trigger_loop, args=(self._trigger_sock, False), name="rig-daemon-trigger", daemon=True).start()
+        if self.token and self.host not in LOOPBACK:
+            self._net_trigger_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._net_trigger_sock.bind((self.host, 0))
+            self._net_trigger_sock.settimeout(0.2)
+            threading.Thread(target=self._trigger_loop, args=(self._net_trigger_sock, True), name="rig-daemon-net-trigger", daemon=True).start()
         self.api = api.serve(self, self.host, self.port, self.token)
         self.ring.heartbeat()  # opening the camera took a while: the loop renews it from here on
         self._publish()
@@ -331,16 +347,20 @@ class CameraDaemon:
         except Exception:  # noqa: BLE001 - a backend failing to reopen: still lost, try again later
             return False
 
-    def _trigger_loop(self) -> None:
-        sock = self._trigger_sock
+    def _trigger_loop(self, sock: socket.socket, tagged: bool) -> None:
         while not self.stop_event.is_set() and sock is not None:
             try:
-                data, address = sock.recvfrom(64)
+                data, address = sock.recvfrom(128)
             except socket.timeout:
                 continue
             except OSError:
                 return
-            if data == b"W":  # a reader's doorbell subscription
+            if tagged:  # from another host: only what carries the token's tag
+                data = verify(self.token, data)
+                if data is None:
+                    self.counters["unauthorised_trigger_datagrams"] += 1
+                    continue
+            elif data == b"W":  # a reader's doorbell subscription
                 self._watchers[address] = time.monotonic() + WATCH_S
                 continue
             if len(data) != TRIGGER.size:
@@ -369,6 +389,7 @@ class CameraDaemon:
         for step in (lambda: self._advert and self._advert.close(), lambda: self.api and self.api.stop(),
                      lambda: paths.info_path(self.config.name, self.cfg.name).unlink(missing_ok=True),
                      self._close_camera, lambda: self._trigger_sock and self._trigger_sock.close(),
+                     lambda: self._net_trigger_sock and self._net_trigger_sock.close(),
                      lambda: self.ring and self.ring.close()):
             try:
                 step()

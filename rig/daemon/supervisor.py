@@ -59,7 +59,7 @@ class Child:
 
 class Supervisor:
     def __init__(self, config: RigConfig, config_path: Path, *, stale_s: float = STALE_S, start_timeout_s: float = 60.0,
-                 daemon_args: tuple[str, ...] = (), say: Callable[[str], None] = print):
+                 daemon_args: tuple[str, ...] = (), say: Callable[[str], None] = print, only: Optional[set[str]] = None):
         self.config = config
         self.config_path = Path(config_path).absolute()
         self.stale_s = stale_s
@@ -72,6 +72,8 @@ class Supervisor:
         self.children = {c.name: Child(c.name) for c in config.cameras if not records_to_card(c)}
         if config.trigger is not None:  # the board's owner, under a name no camera file can have
             self.children[BOARD] = Child(BOARD)
+        if only is not None:  # this host's part of a rig spread over several (rig up --cameras)
+            self.children = {n: c for n, c in self.children.items() if n in only}
         self.events: list[dict] = []
         self.stop_event = threading.Event()
         self._changed = False
