@@ -22,6 +22,20 @@ def world_size() -> int:
     return int(os.environ.get("WORLD_SIZE", "1"))
 
 
+def elastic_restart(out: Path) -> bool:
+    """Whether this process is a worker torchrun started again (`--max-restarts`, a node that came
+    back) for the run in `out`: a checkpoint there written under this rendezvous id."""
+    import json
+
+    run_id = os.environ.get("TORCHELASTIC_RUN_ID")
+    if not run_id or world_size() < 2 or not (Path(out) / "checkpoint.pt").is_file():
+        return False
+    try:
+        return json.loads((Path(out) / "train.json").read_text()).get("elastic_run_id") == run_id
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 @dataclass
 class RunOptions:
     """How to run, as `rig train`'s options give it (None: the default)."""
@@ -86,16 +100,24 @@ def train(cfg, data, out: Path, opts: RunOptions, progress: Optional[Callable[[i
 
     world = world_size()
     torch.set_num_threads(opts.threads or max(1, (os.cpu_count() or 1) // max(1, int(os.environ.get("LOCAL_WORLD_SIZE", world)))))
+    resume = opts.resume
     if world > 1:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        # rank 0 decides whether the run continues (its folder holds the checkpoint: --resume, or
+        # torchrun starting the workers again after one failed) and tells the others
+        decided = [bool(opts.resume or elastic_restart(out))] if rank() == 0 else [None]
+        dist.broadcast_object_list(decided, src=0)
+        resume = bool(decided[0])
     try:
         describe = {"sequences": data.roots, "frame_sets": len(data), "sources": [data.left, data.right],
                     "supervision": data.supervision, "processes": world}
+        if world > 1 and os.environ.get("TORCHELASTIC_RUN_ID"):
+            describe["elastic_run_id"] = os.environ["TORCHELASTIC_RUN_ID"]
         if opts.init is not None:
             describe["init"] = str(opts.init)
         if weights_record is not None:
             describe["backbone_weights"] = weights_record
-        trainer = Trainer(cfg, data, out, resume=opts.resume, progress=progress, describe=describe, init=opts.init,
+        trainer = Trainer(cfg, data, out, resume=resume, progress=progress, describe=describe, init=opts.init,
                           backbone_weights=opts.weights, device=device, precision=opts.precision, workers=workers,
                           cache_mb=DEFAULT_CACHE_MB if opts.cache_mb is None else opts.cache_mb)
         summary = trainer.run(stop_after=opts.stop_after, max_minutes=opts.max_minutes, checkpoint_minutes=opts.checkpoint_minutes)

@@ -210,7 +210,10 @@ class Trainer:
         self.model = build_model(cfg.model, seed=cfg.seed).train()
         self._optim_state = None
         if resume:
-            self._load(self.out / CHECKPOINT)
+            if self.rank == 0:
+                self._load(self.out / CHECKPOINT)
+            if self.world > 1:  # the other processes take rank 0's state (their hosts need no copy of the folder)
+                self._share_state()
         else:
             if self.rank == 0:
                 _check_fresh(self.out)
@@ -238,6 +241,16 @@ class Trainer:
             self._trim_metrics()
 
     # -- state ------------------------------------------------------------------------------------
+
+    def _share_state(self) -> None:
+        """Rank 0's resumed weights, step and optimiser state, to every process."""
+        import torch.distributed as dist
+
+        state = [{"state_dict": self.model.state_dict(), "step": self.step, "optimizer": self._optim_state}] if self.rank == 0 else [None]
+        dist.broadcast_object_list(state, src=0)
+        if self.rank != 0:
+            self.model.load_state_dict(state[0]["state_dict"])
+            self.step, self._optim_state = int(state[0]["step"]), state[0]["optimizer"]
 
     def _load(self, path: Path) -> None:
         if not path.is_file():

@@ -147,6 +147,12 @@ def _check_options(args: argparse.Namespace):
             raise ConfigError(f"{flag} must be a number {'>= 0' if flag == '--cache-mb' else '> 0'}, got {value:g}")
     cfg = build_config(args)
     out = output_folder(args.out)
+    from inference.train.run import elastic_restart
+
+    if int(os.environ.get("RANK", "0")) > 0 or elastic_restart(out):
+        # under torchrun only rank 0 writes the folder (the others may see it fill on a shared disk);
+        # a worker torchrun started again continues its run (inference/train/run.py)
+        return cfg, out
     if not args.resume and out.exists() and ((out / "checkpoint.pt").exists() or (out / "metrics.jsonl").exists()):
         if not (out / "checkpoint.pt").exists():
             raise ConfigError(f"{out}: holds a training run that stopped before its first checkpoint (nothing trained was "
