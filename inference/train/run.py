@@ -83,6 +83,23 @@ def _backbone_weights(cfg, weights: Optional[Path]) -> Optional[dict]:
     return None
 
 
+def _init_group(dist, backend: str) -> None:
+    """The process group. Under torchrun's agent store, each attempt's group under a prefix of its own:
+    the store outlives a failed attempt here, and a worker started again read the old attempt's peer
+    addresses from it and tried to connect to processes that were gone (every restart failed the same
+    way until the restarts ran out). Every agent counts the attempts alike, as every agent restarts its
+    workers when any fails."""
+    import datetime
+
+    if os.environ.get("TORCHELASTIC_USE_AGENT_STORE") != "True":
+        dist.init_process_group(backend)
+        return
+    store = dist.TCPStore(os.environ["MASTER_ADDR"], int(os.environ["MASTER_PORT"]), world_size(), is_master=False,
+                          timeout=datetime.timedelta(minutes=5))
+    attempt = os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")
+    dist.init_process_group(backend, store=dist.PrefixStore(f"rig/attempt_{attempt}", store), rank=rank(), world_size=world_size())
+
+
 def train(cfg, data, out: Path, opts: RunOptions, progress: Optional[Callable[[int, int, dict], None]] = None) -> dict:
     """Train `cfg` on `data` into `out` (this process's share under torchrun); the trainer's summary
     with the device it ran on."""
@@ -102,7 +119,7 @@ def train(cfg, data, out: Path, opts: RunOptions, progress: Optional[Callable[[i
     torch.set_num_threads(opts.threads or max(1, (os.cpu_count() or 1) // max(1, int(os.environ.get("LOCAL_WORLD_SIZE", world)))))
     resume = opts.resume
     if world > 1:
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        _init_group(dist, "nccl" if device.type == "cuda" else "gloo")
         # rank 0 decides whether the run continues (its folder holds the checkpoint: --resume, or
         # torchrun starting the workers again after one failed) and tells the others
         decided = [bool(opts.resume or elastic_restart(out))] if rank() == 0 else [None]

@@ -30,6 +30,7 @@ from sync.frames import Frame
 
 SCHEME = "daemon"
 MDNS_TIMEOUT_S = 3.0
+CLOCK_REFRESH_S = 10.0  # how often a remote daemon's clock offset is measured again
 # A daemon camera's trigger input (rig.daemon.camera_daemon): one datagram per trigger.
 TRIGGER = struct.Struct("<cqq")  # kind (b"S" | b"H"), pulse index, host time ns
 # From another host (the daemon's network trigger input, `network_trigger_port`), a trigger carries a
@@ -149,6 +150,11 @@ class RemoteDaemonCamera(DaemonCamera):
         self._headers = {"Authorization": f"Bearer {token}"} if token else {}
         super().__init__(settings, {}, parts.hostname, token)
         self.info = self._get_json("/status")
+        # the daemon's host stamps frames with its own monotonic clock: moved onto this host's
+        from sync.peer_clock import PeerClock
+
+        self.clock = PeerClock(lambda: self._get_json("/clock")["monotonic_ns"])
+        self.clock.refresh()
         self._out: queue.Queue = queue.Queue(maxsize=self.QUEUE_FRAMES)
         self._running = threading.Event()
         self._lost = threading.Event()
@@ -184,6 +190,8 @@ class RemoteDaemonCamera(DaemonCamera):
     def _poll(self) -> None:
         conn = self._connection()
         while self._running.is_set():
+            if time.monotonic() - self.clock.refreshed_at > CLOCK_REFRESH_S:
+                self.clock.refresh()
             try:
                 conn.request("GET", f"/frames/next?after={self._last_seq}&timeout=0.5", headers=self._headers)
                 resp = conn.getresponse()
@@ -204,7 +212,7 @@ class RemoteDaemonCamera(DaemonCamera):
                 self._restarted()  # a new daemon: its ring counts from 0 again
             self._last_seq = seq
             frame = Frame(image=image, camera=self.name, frame_id=meta["frame_id"], device_ts_ns=meta["device_ts_ns"],
-                          host_ts_ns=meta["host_ts_ns"], pixel_format=meta["pixel_format"], exposure_us=meta["exposure_us"],
+                          host_ts_ns=self.clock.to_local(meta["host_ts_ns"]), pixel_format=meta["pixel_format"], exposure_us=meta["exposure_us"],
                           trigger_index=meta["trigger_index"], sim_time_s=meta["sim_time_s"])
             try:
                 self._out.put_nowait(frame)
@@ -238,6 +246,7 @@ class RemoteDaemonCamera(DaemonCamera):
         self.stop()
         self._last_seq = -1
         self._restarted()
+        self.clock.refresh()
         self.start()
         return True
 

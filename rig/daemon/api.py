@@ -1,6 +1,7 @@
 """A camera daemon's control API: HTTP JSON, FastAPI on uvicorn in a thread of the daemon.
 
     GET  /status              state, frames written, fps, camera counters, recent events
+    GET  /clock               {"monotonic_ns": this host's monotonic clock} (sync.peer_clock)
     GET  /settings            the camera's settings
     PUT  /settings            {"exposure_us": .., "gain": .., "fps": .., "trigger": ..}: opened again with them
     POST /start, POST /stop   acquisition on / off (the daemon stays up)
@@ -31,6 +32,7 @@ from fastapi.responses import JSONResponse, Response
 from rig.daemon.ring import FrameNotReady, FrameOverwritten, RingReader
 from rig.errors import ConfigError, DeviceError, RigError
 from rig.http_access import AccessGuard, bind_socket
+from sync.frames import monotonic_ns
 
 MAX_BODY = 4096
 MAX_WAIT_S = 5.0
@@ -99,6 +101,11 @@ def create_app(daemon, token: Optional[str]) -> FastAPI:
     @app.get("/status")
     async def status():
         return daemon.status()
+
+    @app.get("/clock")
+    async def clock():
+        # this host's monotonic clock: a reader on another host measures its offset (sync.peer_clock)
+        return {"monotonic_ns": monotonic_ns()}
 
     @app.get("/settings")
     async def settings():

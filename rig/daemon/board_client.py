@@ -55,11 +55,13 @@ def open_board(config, inputs: dict[str, Callable[[int, int], None]]):
 
 
 class MirrorClock:
-    """The owner's clock fit, as last received."""
+    """The owner's clock fit, as last received; with `peer` (the owner on another host), host times
+    on this host's clock (sync.peer_clock)."""
 
-    def __init__(self) -> None:
+    def __init__(self, peer=None) -> None:
         self.fit: Optional[ClockFit] = None
         self._age = 0.0
+        self.peer = peer
 
     def update(self, d: Optional[dict]) -> None:
         if d:
@@ -73,12 +75,13 @@ class MirrorClock:
     def board_to_host_ns(self, board_us: float) -> int:
         if self.fit is None:
             raise RuntimeError("clock model has no samples yet")
-        return self.fit.board_to_host_ns(board_us)
+        ns = self.fit.board_to_host_ns(board_us)
+        return self.peer.to_local(ns) if self.peer is not None else ns
 
     def host_to_board_us(self, host_ns: int) -> float:
         if self.fit is None:
             raise RuntimeError("clock model has no samples yet")
-        return self.fit.host_to_board_us(host_ns)
+        return self.fit.host_to_board_us(self.peer.to_peer(host_ns) if self.peer is not None else host_ns)
 
     def age_s(self) -> float:
         return self._age
@@ -294,12 +297,12 @@ class RemoteBoard:
                                           {"reconnect": True}))
                 self._ever = True
             if msg.get("t") == "pulse":
-                pulse = self._own_pulse(Pulse(int(msg["index"]), int(msg["board_us"]), int(msg["received_ns"]), bool(msg["late"])))
+                pulse = self._own_pulse(Pulse(int(msg["index"]), int(msg["board_us"]), self._local(int(msg["received_ns"])), bool(msg["late"])))
                 if pulse is not None:
                     for fn in list(self._pulse_listeners):
                         fn(pulse)
             elif msg.get("t") == "event":
-                event = BoardEvent(str(msg["kind"]), str(msg["detail"]), int(msg["time_ns"]), dict(msg.get("values") or {}))
+                event = BoardEvent(str(msg["kind"]), str(msg["detail"]), self._local(int(msg["time_ns"])), dict(msg.get("values") or {}))
                 if event.kind == "done":
                     continue  # the daemon's train: this session's ends here (_train_ended)
                 self._emit(event)  # the owner's board too may go and come back
@@ -323,6 +326,10 @@ class RemoteBoard:
 
     def _owner_address(self) -> tuple:
         return ("127.0.0.1", int(self.info["event_port"]))
+
+    def _local(self, owner_ns: int) -> int:
+        """A time the owner stamped, on this host's clock (the same clock here)."""
+        return owner_ns
 
     def _datagram(self, data: bytes) -> None:
         try:
@@ -356,16 +363,27 @@ class NetworkBoard(RemoteBoard):
         if not self.token:
             raise TriggerBoardError(f"{uri}: a board daemon on another host needs its token (?token=T)")
         self.HEADERS = {"Authorization": f"Bearer {self.token}"}
+        from sync.peer_clock import PeerClock
+
+        # the owner's pulses, events and clock model are on its host's monotonic clock: measured
+        # against this host's at every renewal (its status carries its clock)
+        self.peer = PeerClock(lambda: 0)
         info = self._locate()
         if info is None:
             raise TriggerBoardError(f"{uri}: the trigger board daemon at {self.api_url} does not answer")
+        for _ in range(4):  # a few more exchanges before the first pulse
+            self._locate()
         super().__init__(rig, info)
+        self.clock = MirrorClock(self.peer)
         self.uri = f"{uri.split('?')[0]} (through its daemon on another host, pid {info.get('pid')})"
 
     def _locate(self) -> Optional[dict[str, Any]]:
         from rig.daemon.board_daemon import _get_status
 
+        t0 = monotonic_ns()
         status = _get_status(self.api_url, self.token)
+        if status is not None and status.get("monotonic_ns"):
+            self.peer.sample(t0, int(status["monotonic_ns"]), monotonic_ns())
         if status is None and self._by_mdns:  # a restarted owner may listen elsewhere: ask mDNS again
             from rig.cameras.daemon import _api_url
 
@@ -381,6 +399,9 @@ class NetworkBoard(RemoteBoard):
 
     def _owner_address(self) -> tuple:
         return (self.info["host"], int(self.info["event_port"]))
+
+    def _local(self, owner_ns: int) -> int:
+        return self.peer.to_local(owner_ns)
 
     def _datagram(self, data: bytes) -> None:
         from rig.cameras.daemon import signed

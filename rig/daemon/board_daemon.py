@@ -55,6 +55,7 @@ from rig.http_access import AccessGuard
 from sync.board import BoardEvent, Pulse, TriggerBoard
 from sync.errors import TriggerBoardError
 from sync.frames import monotonic_ns
+from sync.peer_clock import PeerClock
 
 SUBSCRIPTION_S = 5.0
 REWIRE_S = 3.0  # how often the cameras of other hosts are looked up on mDNS
@@ -62,11 +63,11 @@ LOOPBACK = ("127.0.0.1", "localhost", "::1")
 BOARD_NAME = "@board"  # the board's name among a rig's daemons (rig up, mDNS)
 
 
-def _get_status(api_url: str, token: Optional[str]) -> Optional[dict]:
-    """A daemon's `GET /status`, or None when it does not answer."""
+def _get_status(api_url: str, token: Optional[str], path: str = "/status") -> Optional[dict]:
+    """A daemon's `GET /status` (or another GET route), or None when it does not answer."""
     import urllib.request
 
-    req = urllib.request.Request(f"{api_url}/status", headers={"Authorization": f"Bearer {token}"} if token else {})
+    req = urllib.request.Request(f"{api_url}{path}", headers={"Authorization": f"Bearer {token}"} if token else {})
     try:
         with urllib.request.urlopen(req, timeout=3) as resp:
             return json.loads(resp.read())
@@ -97,6 +98,7 @@ class BoardDaemon:
         self._net_sock: Optional[socket.socket] = None
         self.net_api = None
         self._remote: dict[str, tuple[str, int]] = {}  # camera on another host -> its network trigger input
+        self._remote_clock: dict[str, Any] = {}  # camera on another host -> its host's clock (sync.peer_clock)
         self.board: Optional[TriggerBoard] = None
         self.emulator = None
         self.stop_event = threading.Event()
@@ -125,6 +127,9 @@ class BoardDaemon:
         port = self._camera_port(name)
         payload, address = TRIGGER.pack(b"H", pulse, host_ns), ("127.0.0.1", port)
         if not port and name in self._remote:
+            # an edge's time on the camera's host clock (its simulated exposure is placed by it)
+            clock = self._remote_clock.get(name)
+            payload = TRIGGER.pack(b"H", pulse, clock.to_peer(host_ns) if clock is not None else host_ns)
             payload, address = signed(self.token, payload), self._remote[name]
         if address[1]:
             try:
@@ -149,6 +154,9 @@ class BoardDaemon:
             for name, d in found.items():
                 status = _get_status(d.api_url, self.token)
                 if status and status.get("network_trigger_port"):
+                    clock = PeerClock(lambda url=d.api_url: (_get_status(url, self.token, "/clock") or {})["monotonic_ns"])
+                    if clock.refresh():
+                        self._remote_clock[name] = clock
                     self._remote[name] = (d.host, int(status["network_trigger_port"]))
 
     # --- relaying ------------------------------------------------------------------------------------
@@ -318,7 +326,7 @@ class BoardDaemon:
             return {"report": self.board.report(), "rate_hz": self.board.rate_hz, "pulse_width_us": self.board.pulse_width_us,
                     "running": self._running, "holders": len(self._holds), "uri": self.config.trigger.uri, "pid": os.getpid(),
                     "network_event_port": self._net_sock.getsockname()[1] if self._net_sock else None,
-                    "remote_cameras": sorted(self._remote)}
+                    "remote_cameras": sorted(self._remote), "monotonic_ns": monotonic_ns()}
 
         return app
 

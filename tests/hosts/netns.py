@@ -38,8 +38,11 @@ def available() -> Optional[str]:
 
 
 class TwoHosts:
-    def __init__(self, tag: Optional[str] = None):
+    def __init__(self, tag: Optional[str] = None, clock_offset_s: Optional[dict] = None):
+        """`clock_offset_s`: host -> seconds its monotonic clock runs ahead (a time namespace: two
+        machines' monotonic clocks count from their own boots)."""
         tag = tag or str(os.getpid() % 100000)
+        self.clock_offset_s = dict(clock_offset_s or {})
         self.k = int(tag) % 250 + 1
         self.ns = {"A": f"hostA-{tag}", "B": f"hostB-{tag}"}
         self.dev = {"A": f"vA{tag}"[:15], "B": f"vB{tag}"[:15]}
@@ -100,7 +103,9 @@ class TwoHosts:
 
     # --- using them -------------------------------------------------------------------------------
     def argv(self, host: str, argv: list) -> list[str]:
-        return ["ip", "netns", "exec", self.ns[host], *map(str, argv)]
+        offset = self.clock_offset_s.get(host)
+        clock = ["unshare", "--time", "--fork", "--monotonic", str(offset), "--boottime", str(offset)] if offset else []
+        return ["ip", "netns", "exec", self.ns[host], *clock, *map(str, argv)]
 
     def popen(self, host: str, argv: list, **kw) -> subprocess.Popen:
         """A process on `host` (its own process group: killed with everything it started on leaving)."""

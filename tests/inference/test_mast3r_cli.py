@@ -1,6 +1,6 @@
 """`--backbone mast3r --weights W` on the command line: export (external data, fp16) that the
 runtime loads and `rig model check` passes, the one-line refusals, and training with the backbone
-frozen. Random weights in the official layout at reduced depth (2 encoder + 2 decoder blocks)."""
+frozen. Random weights in the official layout at reduced depth (1 encoder + 2 decoder blocks)."""
 from __future__ import annotations
 
 import json
@@ -17,7 +17,7 @@ from rig.cli import main as rig_main
 
 pytestmark = pytest.mark.slow
 
-ENC, DEC = 2, 2
+ENC, DEC = 1, 2
 
 
 @pytest.fixture(scope="module")
@@ -105,11 +105,11 @@ def test_bad_weights_are_refused_in_one_line(weights, tmp_path, capsys):
     # Another architecture: the official layout with one key renamed, or one shape changed (meta
     # tensors: the check reads names and shapes only, before any data).
     meta = {k: torch.empty(v.shape, device="meta") for k, v in state.items()}
-    renamed = {("enc_blocks.1.attn.proj.weights" if k == "enc_blocks.1.attn.proj.weight" else k): v for k, v in meta.items()}
+    renamed = {("enc_blocks.0.attn.proj.weights" if k == "enc_blocks.0.attn.proj.weight" else k): v for k, v in meta.items()}
     write_checkpoint(tmp_path / "renamed.pth", renamed, ENC, DEC)
     one_line(*rig(capsys, "model", "export", "--backbone", "mast3r", "--weights", tmp_path / "renamed.pth", "--size", "test", "-o", out)[::2],
-             "not the MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric layout", "unexpected key enc_blocks.1.attn.proj.weights (1024, 1024)",
-             "missing enc_blocks.1.attn.proj.weight (1024, 1024)")
+             "not the MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric layout", "unexpected key enc_blocks.0.attn.proj.weights (1024, 1024)",
+             "missing enc_blocks.0.attn.proj.weight (1024, 1024)")
     reshaped = dict(meta, **{"downstream_head1.dpt.head.4.weight": torch.empty(3, 128, 1, 1, device="meta")})
     write_checkpoint(tmp_path / "reshaped.pth", reshaped, ENC, DEC)
     # (export, not eval: eval reads its take first, a check that costs nothing against reading the weights)
