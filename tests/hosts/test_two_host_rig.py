@@ -118,10 +118,16 @@ def test_a_rig_on_two_hosts_records_in_sync_reattaches_after_a_kill_and_serves_t
             wait_running(shm["B"], ON_B)
 
             # hostB finds every daemon of the rig, on both hosts, by mDNS
-            found = hosts.run("B", [sys.executable, "-m", "rig", "discover", "--network", "--json", "--rig", RIG, "--timeout", "6",
-                                    "--interface", hosts.addr["B"]], cwd=REPO, env=env["B"])
-            assert found.returncode == 0, found.stderr
-            daemons = {d["camera"]: d for d in json.loads(found.stdout)["daemons"]}
+            # (a daemon announces itself on mDNS a second or two after it runs: asked again until all are)
+            deadline = time.monotonic() + 60
+            while True:
+                found = hosts.run("B", [sys.executable, "-m", "rig", "discover", "--network", "--json", "--rig", RIG, "--timeout", "6",
+                                        "--interface", hosts.addr["B"]], cwd=REPO, env=env["B"])
+                assert found.returncode == 0, found.stderr
+                daemons = {d["camera"]: d for d in json.loads(found.stdout)["daemons"]}
+                if set(daemons) == set(ON_A + ON_B + ["@board"]) or time.monotonic() > deadline:
+                    break
+                time.sleep(1.0)
             assert set(daemons) == set(ON_A + ON_B + ["@board"]), daemons
             assert {daemons[n]["host"] for n in ON_A + ["@board"]} == {hosts.addr["A"]}
             assert {daemons[n]["host"] for n in ON_B} == {hosts.addr["B"]}
