@@ -129,6 +129,7 @@ def test_a_rig_on_two_hosts_records_in_sync_reattaches_after_a_kill_and_serves_t
                     break
                 time.sleep(1.0)
             assert set(daemons) == set(ON_A + ON_B + ["@board"]), daemons
+            print(f"all daemons found by mDNS {time.monotonic() - deadline + 60:.1f} s after the supervisors said running")
             assert {daemons[n]["host"] for n in ON_A + ["@board"]} == {hosts.addr["A"]}
             assert {daemons[n]["host"] for n in ON_B} == {hosts.addr["B"]}
             assert all(d["token_required"] for d in daemons.values())
