@@ -78,17 +78,22 @@ def one_process(take: Path, light: Path, out: Path, steps: int) -> None:
     assert r.returncode == 0, r.stderr[-2000:]
 
 
+def two_nodes(args: list, port: int, logs: Path, tag: str) -> None:
+    """`rig train ARGS` on both hosts under rendezvous id two-nodes; both must succeed (logs in LOGS/A{tag}.err, B{tag}.err)."""
+    with TwoHosts() as hosts:
+        a = torchrun(hosts, "A", port, "two-nodes", args, logs / f"A{tag}")
+        b = torchrun(hosts, "B", port, "two-nodes", args, logs / f"B{tag}")
+        a.wait(500)
+        b.wait(60)
+    assert not hosts.exists(), "a namespace was left behind"
+    assert a.returncode == 0 and b.returncode == 0, ((logs / f"A{tag}.err").read_text()[-2000:], (logs / f"B{tag}.err").read_text()[-2000:])
+
+
 def test_two_nodes_train_as_one_process_on_the_same_global_batch(take, light, tmp_path):
     one_process(take, light, tmp_path / "one", 3)
     two = tmp_path / "two"
     args = [take, "-o", two, *SMALL, "--config", light, "--stage1-steps", 3, "--stage2-steps", 0]
-    with TwoHosts() as hosts:
-        a = torchrun(hosts, "A", 29411, "two-nodes", args, tmp_path / "A")
-        b = torchrun(hosts, "B", 29411, "two-nodes", args, tmp_path / "B")
-        a.wait(500)
-        b.wait(60)
-    err_a, err_b = (tmp_path / "A.err").read_text(), (tmp_path / "B.err").read_text()
-    assert a.returncode == 0 and b.returncode == 0, (err_a[-2000:], err_b[-2000:])
+    two_nodes(args, 29411, tmp_path, "")
     assert json.loads((two / "train.json").read_text())["processes"] == 2
     l1, l2 = losses(tmp_path / "one"), losses(two)
     assert [s for s, _ in l2] == [1, 2, 3]
@@ -98,10 +103,5 @@ def test_two_nodes_train_as_one_process_on_the_same_global_batch(take, light, tm
 
     # the same command line again under the same rendezvous id, with a longer schedule: it goes on
     more = [take, "-o", two, *SMALL, "--config", light, "--stage1-steps", 5, "--stage2-steps", 0]
-    with TwoHosts() as hosts:
-        a = torchrun(hosts, "A", 29412, "two-nodes", more, tmp_path / "A2")
-        b = torchrun(hosts, "B", 29412, "two-nodes", more, tmp_path / "B2")
-        a.wait(500)
-        b.wait(60)
-    assert a.returncode == 0 and b.returncode == 0, ((tmp_path / "A2.err").read_text()[-2000:], (tmp_path / "B2.err").read_text()[-2000:])
+    two_nodes(more, 29412, tmp_path, "2")
     assert [s for s, _ in losses(two)] == [1, 2, 3, 4, 5]
