@@ -378,10 +378,10 @@ class NetworkBoard(RemoteBoard):
         self.uri = f"{uri.split('?')[0]} (through its daemon on another host, pid {info.get('pid')})"
 
     def _locate(self) -> Optional[dict[str, Any]]:
-        from rig.daemon.board_daemon import _get_status
+        from rig.daemon.board_daemon import daemon_status
 
         t0 = monotonic_ns()
-        status = _get_status(self.api_url, self.token)
+        status = daemon_status(self.api_url, self.token)
         if status is not None and status.get("monotonic_ns"):
             self.peer.sample(t0, int(status["monotonic_ns"]), monotonic_ns())
         if status is None and self._by_mdns:  # a restarted owner may listen elsewhere: ask mDNS again
@@ -391,7 +391,7 @@ class NetworkBoard(RemoteBoard):
                 self.api_url, _ = _api_url(self.board_uri)
             except Exception:  # noqa: BLE001 - not there now: asked again at the next renewal
                 return None
-            status = _get_status(self.api_url, self.token)
+            status = daemon_status(self.api_url, self.token)
         if not status or not status.get("network_event_port"):
             return None
         return {"pid": status.get("pid"), "uri": status.get("uri"), "api": self.api_url, "event_port": int(status["network_event_port"]),

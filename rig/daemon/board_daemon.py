@@ -63,7 +63,7 @@ LOOPBACK = ("127.0.0.1", "localhost", "::1")
 BOARD_NAME = "@board"  # the board's name among a rig's daemons (rig up, mDNS)
 
 
-def _get_status(api_url: str, token: Optional[str], path: str = "/status") -> Optional[dict]:
+def daemon_status(api_url: str, token: Optional[str], path: str = "/status") -> Optional[dict]:
     """A daemon's `GET /status` (or another GET route), or None when it does not answer."""
     import urllib.request
 
@@ -152,9 +152,9 @@ class BoardDaemon:
             except Exception:  # noqa: BLE001 - mDNS unavailable now: try again later
                 continue
             for name, d in found.items():
-                status = _get_status(d.api_url, self.token)
+                status = daemon_status(d.api_url, self.token)
                 if status and status.get("network_trigger_port"):
-                    clock = PeerClock(lambda url=d.api_url: (_get_status(url, self.token, "/clock") or {})["monotonic_ns"])
+                    clock = PeerClock(lambda url=d.api_url: (daemon_status(url, self.token, "/clock") or {})["monotonic_ns"])
                     if clock.refresh():
                         self._remote_clock[name] = clock
                     self._remote[name] = (d.host, int(status["network_trigger_port"]))
