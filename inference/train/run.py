@@ -83,21 +83,62 @@ def _backbone_weights(cfg, weights: Optional[Path]) -> Optional[dict]:
     return None
 
 
+GROUP_STORE_KEY = "rig/group_store"  # in torchrun's agent store: "PORT NONCE" of rank 0's beacon for this attempt
+GROUP_TIMEOUT_S = 300.0
+
+
 def _init_group(dist, backend: str) -> None:
-    """The process group. Under torchrun's agent store, each attempt's group under a prefix of its own:
-    the store outlives a failed attempt here, and a worker started again read the old attempt's peer
-    addresses from it and tried to connect to processes that were gone (every restart failed the same
-    way until the restarts ran out). Every agent counts the attempts alike, as every agent restarts its
-    workers when any fails."""
+    """The process group. Under torchrun's agent store (c10d rendezvous) each attempt's group keeps its
+    keys under a name rank 0 draws for it. The agent store outlives a failed attempt, and torch names
+    each attempt's keys by the restart count, which each agent counts for itself: a node whose worker
+    died counts a restart, the other node, whose agent restarts its workers because a node waits to
+    join, does not (pytorch/pytorch#108158, #135712). Their workers then looked for each other under
+    different names and waited until they timed out. Rank 0 publishes its name in the agent store
+    with the port of a small store of its own (a beacon) that answers with the same name: an earlier
+    attempt's entry names a beacon that is gone, and the others read the entry again until rank 0's
+    is there. The group itself lives in the agent store, which outlives every worker."""
     import datetime
+    import secrets
+    import time
 
     if os.environ.get("TORCHELASTIC_USE_AGENT_STORE") != "True":
         dist.init_process_group(backend)
         return
-    store = dist.TCPStore(os.environ["MASTER_ADDR"], int(os.environ["MASTER_PORT"]), world_size(), is_master=False,
-                          timeout=datetime.timedelta(minutes=5))
-    attempt = os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")
-    dist.init_process_group(backend, store=dist.PrefixStore(f"rig/attempt_{attempt}", store), rank=rank(), world_size=world_size())
+    addr, timeout = os.environ["MASTER_ADDR"], datetime.timedelta(seconds=GROUP_TIMEOUT_S)
+    agent = dist.TCPStore(addr, int(os.environ["MASTER_PORT"]), world_size(), is_master=False, timeout=timeout)
+    global _BEACON
+    if rank() == 0:
+        # rank 0 runs on the node that hosts the agent store, so MASTER_ADDR reaches its beacon too
+        name = secrets.token_hex(8)
+        _BEACON = dist.TCPStore(addr, 0, 1, is_master=True, timeout=timeout, wait_for_workers=False)
+        _BEACON.set("name", name)
+        agent.set(GROUP_STORE_KEY, f"{_BEACON.port} {name}")
+    else:
+        name = _attempt_name(dist, agent, addr, time.monotonic() + GROUP_TIMEOUT_S)
+    dist.init_process_group(backend, store=dist.PrefixStore(f"rig/attempt/{name}", agent), rank=rank(), world_size=world_size(),
+                            timeout=timeout)
+
+
+_BEACON = None  # rank 0's beacon store, kept for the life of the process
+
+
+def _attempt_name(dist, agent, addr: str, deadline: float) -> str:
+    """The name rank 0 drew for this attempt (see _init_group): the entry in the agent store, read
+    again until the beacon it names answers with the same name."""
+    import datetime
+    import time
+
+    while True:
+        port, name = agent.get(GROUP_STORE_KEY).decode().split()
+        try:
+            beacon = dist.TCPStore(addr, int(port), 1, is_master=False, timeout=datetime.timedelta(seconds=3))
+            if beacon.get("name").decode() == name:
+                return name
+        except (RuntimeError, dist.DistStoreError):  # refused or timed out: the entry was an earlier attempt's
+            pass
+        if time.monotonic() > deadline:
+            raise InferenceError(f"rig train: rank 0 of this attempt did not answer within {GROUP_TIMEOUT_S:.0f} s")
+        time.sleep(0.5)
 
 
 def train(cfg, data, out: Path, opts: RunOptions, progress: Optional[Callable[[int, int, dict], None]] = None) -> dict:
