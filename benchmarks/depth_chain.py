@@ -8,7 +8,9 @@ person masks), on the person masks and over the whole view:
 - stage 1: AbsRel of the sources' depth where both see (as `rig model eval`);
 - initial: depth initialisation's splatted depth in the target (fine size), with the share of
   person pixels no point reached (holes, filled by push-pull) and of those beyond stage 2's search
-  range, nearer (something in front of the person) and farther (the wall behind shows through);
+  range, nearer (something in front of the person) and farther (the wall behind shows through),
+  farther by over 20 % (the surface behind, not a small error of the person's depth), and farther
+  inside the person mask eroded by 2 pixels (not the silhouette's edge);
 - refined: stage 2's refined depth (fine size);
 - rendered: the Gaussians' depth (output size), where they cover the pixel over one half;
 - vanished: rendered over 30 % off or not covered (as `rig model eval`).
@@ -64,6 +66,10 @@ class Chain:
         self.person: list[float] = []
         self.full: list[float] = []
         self.person_far = [0, 0, 0]  # pixels beyond the search range nearer, farther, pixels counted
+        # farther by over 20 % (the surface behind, not a small error of the person's own depth), and
+        # farther inside the mask eroded by 2 pixels (not the silhouette's edge): pixels, pixels counted
+        self.person_behind = [0, 0]
+        self.interior_far = [0, 0]
         self.person_holes = [0, 0]
 
     def add(self, depth, truth, mask, covered=None, far: float = 0.06) -> None:
@@ -81,7 +87,12 @@ class Chain:
             self.person.append(float(np.abs(ratio - 1).mean()))
             self.person_far[0] += int((ratio < 1 - far).sum())
             self.person_far[1] += int((ratio > 1 + far).sum())
+            self.person_behind[0] += int((ratio > 1.2).sum())
+            inner = eroded(mask, 2) & keep
+            self.interior_far[0] += int((d[inner] / truth[inner] > 1 + far).sum())
+            self.interior_far[1] += int((eroded(mask, 2) & (truth > 0)).sum())
         self.person_far[2] += int((mask & (truth > 0)).sum())
+        self.person_behind[1] += int((mask & (truth > 0)).sum())
 
     def summary(self) -> dict:
         import numpy as np
@@ -90,7 +101,20 @@ class Chain:
                 "absrel": round(float(np.mean(self.full)), 5) if self.full else None,
                 "person_nearer": round(self.person_far[0] / self.person_far[2], 5) if self.person_far[2] else None,
                 "person_farther": round(self.person_far[1] / self.person_far[2], 5) if self.person_far[2] else None,
-                "person_holes": round(self.person_holes[0] / self.person_holes[1], 5) if self.person_holes[1] else None}
+                "person_holes": round(self.person_holes[0] / self.person_holes[1], 5) if self.person_holes[1] else None,
+                "person_behind": round(self.person_behind[0] / self.person_behind[1], 5) if self.person_behind[1] else None,
+                "interior_farther": round(self.interior_far[0] / self.interior_far[1], 5) if self.interior_far[1] else None}
+
+
+def eroded(mask, n: int):
+    """`mask` less every pixel within n pixels (4-neighbour steps) of its outside or the image's edge."""
+    import numpy as np
+
+    m = mask.copy()
+    for _ in range(n):
+        p = np.pad(m, 1, constant_values=False)
+        m = m & p[:-2, 1:-1] & p[2:, 1:-1] & p[1:-1, :-2] & p[1:-1, 2:]
+    return m
 
 
 def measure(model, data, picks, search: float) -> dict:
@@ -178,10 +202,10 @@ def main() -> int:
     print(f"{args.model} {' '.join(args.settings)}: {len(names)} takes, {result['views']} views, {result['wall_s']} s")
     print(f"stage 1 (sources, where both see): people {pct(result['stage1_person_absrel'])}")
     beyond = format(100 * search, '.0f')
-    print(f"{'':10s} {'people':>8s} {'all':>8s} {'people >' + beyond + ' % nearer':>19s} {'people >' + beyond + ' % farther':>20s} {'people in holes':>16s}")
+    print(f"{'':10s} {'people':>8s} {'all':>8s} {'people >' + beyond + ' % nearer':>19s} {'people >' + beyond + ' % farther':>20s} {'people in holes':>16s} {'people >20 % farther':>21s} {'inside farther':>15s}")
     for k in ("initial", "refined", "rendered"):
         r = result[k]
-        print(f"{k:10s} {pct(r['person_absrel']):>8s} {pct(r['absrel']):>8s} {pct(r['person_nearer']):>19s} {pct(r['person_farther']):>20s} {pct(r['person_holes']):>16s}")
+        print(f"{k:10s} {pct(r['person_absrel']):>8s} {pct(r['absrel']):>8s} {pct(r['person_nearer']):>19s} {pct(r['person_farther']):>20s} {pct(r['person_holes']):>16s} {pct(r['person_behind']):>21s} {pct(r['interior_farther']):>15s}")
     print(f"vanished {pct(result['vanished'])}")
     return 0
 
