@@ -119,7 +119,15 @@ def _init_group(dist, backend: str) -> None:
                             timeout=timeout)
 
 
-_BEACON = None  # rank 0's beacon store, kept for the life of the process
+_BEACON = None  # rank 0's beacon store, kept until the group is gone
+
+
+def _release_beacon() -> None:
+    """Stop rank 0's beacon with the group rather than in the interpreter's teardown, which destroys
+    objects in no set order (a worker that left its group to the teardown aborted there: "terminate
+    called without an active exception")."""
+    global _BEACON
+    _BEACON = None
 
 
 def _attempt_name(dist, agent, addr: str, deadline: float) -> str:
@@ -183,4 +191,5 @@ def train(cfg, data, out: Path, opts: RunOptions, progress: Optional[Callable[[i
     finally:
         if world > 1 and dist.is_initialized():
             dist.destroy_process_group()
+        _release_beacon()
     return summary
