@@ -32,7 +32,7 @@ from tests.hosts.netns import TwoHosts, available
 from tests.rig.cli_helpers import REPO
 
 WHY = available()
-pytestmark = [pytest.mark.skipif(WHY is not None, reason=f"two hosts need network namespaces: {WHY}"), pytest.mark.timeout(400)]
+pytestmark = [pytest.mark.skipif(WHY is not None, reason=f"two hosts need network namespaces: {WHY}"), pytest.mark.timeout(400), pytest.mark.slow]
 TOKEN = "duo-rig-token-7"
 RIG = "duo"
 AHEAD_S = 1000  # hostB's monotonic clock runs this far ahead of hostA's

@@ -10,6 +10,7 @@ import pytest
 from tests.rig.cli_helpers import REPO, assert_one_line_error, run_rig
 
 LIVE = REPO / "models" / "splat-sap-live.onnx"
+pytestmark = pytest.mark.slow  # an export among them: a minute in all, started early
 
 
 def _copy_model(dst: Path) -> Path:
