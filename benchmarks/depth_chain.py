@@ -5,7 +5,8 @@ validation set: 19.6 % against 9.2 % AbsRel). This follows a model's depth throu
 at every supervision camera of two frame sets per take of a simulator set (ground-truth depth and
 person masks), on the person masks and over the whole view:
 
-- stage 1: AbsRel of the sources' depth where both see (as `rig model eval`);
+- stage 1: AbsRel of the sources' depth where both see (as `rig model eval`), and the share of
+  their person pixels more than 20 % off (and more than 20 % too far: the wall taken for the person);
 - initial: depth initialisation's splatted depth in the target (fine size), with the share of
   person pixels no point reached (holes, filled by push-pull) and of those beyond stage 2's search
   range, nearer (something in front of the person) and farther (the wall behind shows through),
@@ -123,7 +124,7 @@ def measure(model, data, picks, search: float) -> dict:
 
     from inference.evaluate.model_eval import vanished_pixels
     from inference.train.data import Preprocessor
-    from inference.train.depth_figures import stage1_absrel
+    from inference.train.depth_figures import depth_ratios
 
     pre = Preprocessor()
     sizes = model.cfg.sizes
@@ -138,7 +139,7 @@ def measure(model, data, picks, search: float) -> dict:
             if all(fs.depth.get(c) is not None and fs.masks.get(c) is not None for c in (data.left, data.right)):
                 gt = {c: pre.depth(fs.depth[c], fs.cameras[c], sizes.coarse) for c in (data.left, data.right)}
                 masks = {c: pre.depth(fs.masks[c].astype(np.float32), fs.cameras[c], sizes.coarse) > 0.5 for c in (data.left, data.right)}
-                stage1_person += stage1_absrel(affine, L, R, fs, data, gt, sizes.coarse, masks)
+                stage1_person += depth_ratios(affine, L, R, fs, data, gt, sizes.coarse, masks)
             for sup in data.supervision:
                 if fs.depth.get(sup) is None or fs.masks.get(sup) is None:
                     continue
@@ -157,7 +158,11 @@ def measure(model, data, picks, search: float) -> dict:
                 chains["rendered"].add(out["depth"], truth_out, mask_out, covered=out["alpha"][0, 0].numpy() > 0.5, far=search)
                 o, c = vanished_pixels(out["depth"], out["alpha"], truth_out, mask_out)
                 off, counted = off + o, counted + c
-    return {"stage1_person_absrel": round(float(np.mean(stage1_person)), 5) if stage1_person else None,
+    ratios = np.concatenate(stage1_person) if stage1_person else None
+    return {"stage1_person_absrel": round(float(np.mean([np.mean(np.abs(r - 1)) for r in stage1_person])), 5) if stage1_person else None,
+            # the share of stage 1's person pixels more than 20 % off, and more than 20 % too far
+            "stage1_person_off20": round(float(np.mean(np.abs(ratios - 1) > 0.2)), 5) if ratios is not None else None,
+            "stage1_person_behind": round(float(np.mean(ratios > 1.2)), 5) if ratios is not None else None,
             **{k: v.summary() for k, v in chains.items()},
             "vanished": round(off / counted, 5) if counted else None, "views": len(chains["rendered"].full)}
 
@@ -200,7 +205,8 @@ def main() -> int:
         return 0
     pct = lambda v: "-" if v is None else f"{100 * v:.1f} %"
     print(f"{args.model} {' '.join(args.settings)}: {len(names)} takes, {result['views']} views, {result['wall_s']} s")
-    print(f"stage 1 (sources, where both see): people {pct(result['stage1_person_absrel'])}")
+    print(f"stage 1 (sources, where both see): people {pct(result['stage1_person_absrel'])}, "
+          f"over 20 % off {pct(result['stage1_person_off20'])}, over 20 % too far {pct(result['stage1_person_behind'])}")
     beyond = format(100 * search, '.0f')
     print(f"{'':10s} {'people':>8s} {'all':>8s} {'people >' + beyond + ' % nearer':>19s} {'people >' + beyond + ' % farther':>20s} {'people in holes':>16s} {'people >20 % farther':>21s} {'inside farther':>15s}")
     for k in ("initial", "refined", "rendered"):

@@ -22,7 +22,7 @@ def stage1_depths(affine, L, R, source: FrameSource) -> dict:
             source.right: transform_points(to_right, affine.points_right)[0, 2].detach().float().cpu().numpy()}
 
 
-def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None,
+def depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None,
                   single: bool = False) -> list[np.ndarray]:
     """Stage 1's depth over ground truth in each source (coarse, pinhole), on the pixels the other
     source also sees (`single`: on those with ground truth that it does not see; and, given `masks`
@@ -43,15 +43,15 @@ def _depth_ratios(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse
 
 def stage1_absrel(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int], masks: Optional[dict] = None,
                   single: bool = False) -> list[float]:
-    """AbsRel of stage 1's depth in each source against ground truth (see _depth_ratios for the pixels)."""
-    return [float(np.mean(np.abs(r - 1.0))) for r in _depth_ratios(affine, L, R, fs, source, gt_coarse, coarse, masks, single)]
+    """AbsRel of stage 1's depth in each source against ground truth (see depth_ratios for the pixels)."""
+    return [float(np.mean(np.abs(r - 1.0))) for r in depth_ratios(affine, L, R, fs, source, gt_coarse, coarse, masks, single)]
 
 
 def stage1_scale_split(affine, L, R, fs, source: FrameSource, gt_coarse: dict, coarse: tuple[int, int]) -> list[tuple[float, float]]:
     """Stage 1's depth error split into its scale and its shape, per source: the median of depth over
     ground truth (1: the metric scale is right) and the AbsRel left once the depth is divided by it."""
     out = []
-    for r in _depth_ratios(affine, L, R, fs, source, gt_coarse, coarse):
+    for r in depth_ratios(affine, L, R, fs, source, gt_coarse, coarse):
         med = float(np.median(r))
         out.append((med, float(np.mean(np.abs(r / med - 1.0)))))
     return out
