@@ -32,6 +32,7 @@ from sync.frames import monotonic_ns
 
 LOST_S = 1.5
 RENEW_S = 1.0
+BOARD_BACK_S = 15.0  # how long a session waits for a board daemon that died to be restarted
 
 
 def board_daemon(rig: str) -> Optional[dict[str, Any]]:
@@ -48,10 +49,30 @@ def open_board(config, inputs: dict[str, Callable[[int, int], None]]):
     daemon)."""
     if config.trigger.uri.startswith("daemon://"):
         return NetworkBoard(config.name, config.trigger.uri), None
-    owner = board_daemon(config.name)
+    owner = board_daemon(config.name) or board_daemon_back(config.name)
     if owner is not None:
         return RemoteBoard(config.name, owner), None
     return open_in_process(config.trigger, inputs, config)
+
+
+def board_daemon_back(rig: str, within_s: Optional[float] = None) -> Optional[dict[str, Any]]:
+    """The info of this rig's board daemon once it is back, when one died and left its info behind
+    (its supervisor restarts it within seconds); None when no daemon ran the board. Opening the board
+    in this process in that gap ran a second pulse train beside the restarted daemon's: the cameras
+    were fired at twice the rate, and a take paired frames of different pulses."""
+    path = paths.board_info_path(rig)
+    stale = paths.read_json(path)
+    if stale is None:
+        return None
+    within_s = BOARD_BACK_S if within_s is None else within_s
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline:
+        info = board_daemon(rig)
+        if info is not None:
+            return info
+        time.sleep(0.1)
+    raise TriggerBoardError(f"the trigger board daemon of rig '{rig}' (pid {stale.get('pid')}) is gone and did not come back within "
+                            f"{within_s:.0f} s: run `rig up`, or remove {path} to drive the board from this process")
 
 
 class MirrorClock:
