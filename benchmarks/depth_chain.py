@@ -67,9 +67,9 @@ class Chain:
         self.person: list[float] = []
         self.full: list[float] = []
         self.person_far = [0, 0, 0]  # pixels beyond the search range nearer, farther, pixels counted
-        # farther by over 20 % (the surface behind, not a small error of the person's own depth), and
+        # farther by over 20 % (the surface behind, not a small error of the person's own depth): pixels;
         # farther inside the mask eroded by 2 pixels (not the silhouette's edge): pixels, pixels counted
-        self.person_behind = [0, 0]
+        self.person_behind = 0
         self.interior_far = [0, 0]
         self.person_holes = [0, 0]
 
@@ -88,12 +88,11 @@ class Chain:
             self.person.append(float(np.abs(ratio - 1).mean()))
             self.person_far[0] += int((ratio < 1 - far).sum())
             self.person_far[1] += int((ratio > 1 + far).sum())
-            self.person_behind[0] += int((ratio > 1.2).sum())
+            self.person_behind += int((ratio > 1.2).sum())
             inner = eroded(mask, 2) & keep
             self.interior_far[0] += int((d[inner] / truth[inner] > 1 + far).sum())
             self.interior_far[1] += int((eroded(mask, 2) & (truth > 0)).sum())
         self.person_far[2] += int((mask & (truth > 0)).sum())
-        self.person_behind[1] += int((mask & (truth > 0)).sum())
 
     def summary(self) -> dict:
         import numpy as np
@@ -103,7 +102,7 @@ class Chain:
                 "person_nearer": round(self.person_far[0] / self.person_far[2], 5) if self.person_far[2] else None,
                 "person_farther": round(self.person_far[1] / self.person_far[2], 5) if self.person_far[2] else None,
                 "person_holes": round(self.person_holes[0] / self.person_holes[1], 5) if self.person_holes[1] else None,
-                "person_behind": round(self.person_behind[0] / self.person_behind[1], 5) if self.person_behind[1] else None,
+                "person_behind": round(self.person_behind / self.person_far[2], 5) if self.person_far[2] else None,
                 "interior_farther": round(self.interior_far[0] / self.interior_far[1], 5) if self.interior_far[1] else None}
 
 
