@@ -162,6 +162,12 @@ class Stage1Config:
     # T keeps only its part along each point's ray from its own camera: T moves a point nearer or
     # farther, never off the pixel it came from (a calibrated backbone's points lie on their rays).
     translation_along_rays: bool = False
+    # S as one factor for all three axes, its depth axis' (the one depth supervision trains): a
+    # calibrated backbone's points stay on their rays. Three factors (the paper's S) scale x and y
+    # apart from depth and move every point off its pixel in proportion to its distance from the
+    # optical axis (people41-f: x 4.08, y 2.83, z 3.69 baselines; heads and outstretched arms landed
+    # on the wall in the novel view, docs/model.md).
+    isotropic_scale: bool = False
 
     def __post_init__(self) -> None:
         if self.affine not in ("learned", "bypass"):
@@ -178,6 +184,8 @@ class Stage1Config:
             raise InferenceError(f"stage1: translation_gate must be >= 0, got {self.translation_gate!r}")
         if not isinstance(self.translation_along_rays, bool):
             raise InferenceError(f"stage1: translation_along_rays must be true or false, got {self.translation_along_rays!r}")
+        if not isinstance(self.isotropic_scale, bool):
+            raise InferenceError(f"stage1: isotropic_scale must be true or false, got {self.isotropic_scale!r}")
 
 
 ZBUFFERS = ("occlusion", "reference")
@@ -314,7 +322,8 @@ SAVED_BEFORE: dict[tuple[str, str], Any] = {
 # refinement and tokens; their depths shape nothing, but its logits mean them, so a run that moves them
 # retrains the backbone). A run may start from weights trained with other values of these (fine-tuning to them).
 WEIGHT_FREE: dict[str, Any] = {"sizes": "*", "depth_init": "*", "splat": "*", "stage2": {"visibility_ramp", "search_range", "candidates"},
-                               "stage1": {"scale_search", "scale_search_range", "scale_search_floor", "translation_gate", "translation_along_rays"},
+                               "stage1": {"scale_search", "scale_search_range", "scale_search_floor", "translation_gate", "translation_along_rays",
+                                          "isotropic_scale"},
                                "backbone": {"stereo_cascade_range", "stereo_input_scale", "stereo_near", "stereo_far"}}
 
 # Weight-shaping keys a run may turn on over weights trained without them: the modules they add

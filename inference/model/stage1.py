@@ -194,6 +194,8 @@ class AffineTransform(nn.Module):
         focal_l = torch.stack([left_K[:, 0, 0] / cw, left_K[:, 1, 1] / ch], dim=1)
         focal_r = torch.stack([right_K[:, 0, 0] / cw, right_K[:, 1, 1] / ch], dim=1)
         s = self.scale_head(pm.tokens_left, pm.tokens_right, focal_l, focal_r, baseline)  # (B, 3)
+        if self.cfg.isotropic_scale:
+            s = s[:, 2:3].repeat(1, 3)
 
         # Both views in one batch of 2B: view i looks into the other view j.
         w_l = pm.conf_left - 1.0

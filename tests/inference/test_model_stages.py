@@ -157,6 +157,37 @@ def test_translation_along_rays_keeps_every_point_on_its_pixels_ray():
     assert outs[True].translation_left.abs().max() > 1e-3
 
 
+def test_an_isotropic_scale_keeps_points_on_their_rays_where_three_factors_move_them_off():
+    """A trained S with three different factors (people41-f: 4.08, 2.83, 3.69 baselines) scales x
+    and y apart from depth: every point leaves its pixel's ray in proportion to its distance from
+    the optical axis, even with T along the rays. isotropic_scale keeps S's depth factor for all
+    three axes: the depth is the same, the points stay on their rays."""
+    pm, left, right, r2l = oracle_maps("metric")
+    outs = {}
+    for iso in (False, True):
+        torch.manual_seed(1)
+        layer = AffineTransform(Stage1Config(iterations=2, translation_along_rays=True, scale_reference="one", isotropic_scale=iso),
+                                pm.tokens_left.shape[-1], COARSE)
+        torch.nn.init.normal_(layer.translation.delta[-1].weight, std=0.2)
+        with torch.no_grad():
+            layer.scale_head.mlp[-1].bias.copy_(torch.tensor([0.1, -0.25, 0.0]))  # x 1.1, y 0.78, z 1 times
+            outs[iso] = layer(pm, t(left.K), t(right.K), r2l)
+    cw, ch = COARSE
+    grid = pixel_rays(torch.eye(3)[None], cw, ch)[:, :2]
+    l2r = invert_pose(r2l)
+    for iso, out in outs.items():
+        uv_l, _ = project(out.points_left, t(left.K))
+        uv_r, _ = project(transform_points(l2r, out.points_right), t(right.K))
+        off = max(float((uv_l - grid).abs().max()), float((uv_r - grid).abs().max()))
+        assert (off < 1e-2) if iso else (off > 2.0), (iso, off)
+    # The same depth in the left camera either way (within what T, which reads the scaled points,
+    # changes): only x and y differ.
+    assert torch.allclose(outs[True].points_left[:, 2], outs[False].points_left[:, 2], rtol=1e-3)
+    assert torch.allclose(outs[True].scale, outs[False].scale[:, 2:3].expand(-1, 3))
+    with pytest.raises(Exception, match="isotropic_scale"):
+        Stage1Config(isotropic_scale="yes")
+
+
 def test_translation_and_scale_stay_bounded_whatever_the_weights():
     """An unbounded update once sent T to tens of metres in training (every point behind the
     cameras, no gradient back): T moves at most translation_step baselines per iteration and axis,
