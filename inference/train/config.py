@@ -129,6 +129,12 @@ class TrainConfig:
     # (and where stage2_trains_stage1 > 0, the depth terms keep holding stage 1 there too).
     recipe: str = "self-supervised"
     depth_supervision: DepthSupervision = field(default_factory=DepthSupervision)
+    # The supervised recipe only: stage 2 also pulls each supervision view's refined depth (depth
+    # refinement's output, the fine size) towards the view's ground truth, mean |log d - log d*| over
+    # the pixels the truth covers plus the person pixels again at depth_supervision.person, times this
+    # weight (0: off). Without it depth refinement learns only from the rendered colour, and it left
+    # depth init's error where it was (refined = initial within 0.1 %, docs/model.md).
+    view_depth: float = 0.0
 
     @property
     def supervised(self) -> bool:
@@ -159,6 +165,11 @@ class TrainConfig:
                                  "and the recipe is self-supervised (give the supervised recipe, or a weight above 0)")
         if not (isinstance(self.mvs_depth, (int, float)) and self.mvs_depth >= 0):
             raise InferenceError(f"mvs_depth must be a number >= 0, got {self.mvs_depth!r}")
+        if not (isinstance(self.view_depth, (int, float)) and not isinstance(self.view_depth, bool)
+                and self.view_depth >= 0 and math.isfinite(self.view_depth)):
+            raise InferenceError(f"view_depth must be a number >= 0, got {self.view_depth!r}")
+        if self.view_depth > 0 and not self.supervised:
+            raise InferenceError("view_depth reads the views' ground-truth depth: it needs the supervised recipe")
         try:
             self.mvs.check()
         except ValueError as exc:

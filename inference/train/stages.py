@@ -87,6 +87,28 @@ def source_depth_error(points_left: torch.Tensor, points_right: torch.Tensor, le
 
 
 @dataclass
+class ViewTruth:
+    """The supervision views' ground-truth depth at the fine size (B*S, H, W), where it holds, and their person masks."""
+
+    depth: torch.Tensor
+    valid: torch.Tensor
+    person: torch.Tensor
+
+    def to(self, device, non_blocking: bool = False) -> "ViewTruth":
+        return ViewTruth(*(t.to(device, non_blocking=non_blocking) for t in (self.depth, self.valid, self.person)))
+
+
+def view_depth_error(depth: torch.Tensor, truth: ViewTruth, person: float) -> torch.Tensor:
+    """The refined depth (B*S, 1, H, W) against the views' truth: log_depth_error over the pixels the
+    truth covers, plus `person` times the same over the person pixels (0 for a view without people)."""
+    d = depth[:, 0]
+    loss = log_depth_error(d, truth.depth, truth.valid)
+    if person > 0:
+        loss = loss + person * log_depth_error(d, truth.depth, truth.valid & truth.person)
+    return loss
+
+
+@dataclass
 class Batch:
     left: Views  # (B, ...) at the fine size
     right: Views
@@ -95,6 +117,7 @@ class Batch:
     per_set: int  # S
     source_depth: SourceDepth | None = None  # stage 1: multi-view stereo depth of the sources (TrainConfig.mvs_depth)
     truth_depth: TruthDepth | None = None  # the supervised recipe: the sources' ground-truth depth at the coarse size
+    view_truth: ViewTruth | None = None  # stage 2 with view_depth: the supervision views' ground-truth depth, fine size
 
     def __len__(self) -> int:
         return self.left.images.shape[0]
@@ -102,7 +125,8 @@ class Batch:
     def _map(self, f) -> "Batch":
         return Batch(f(self.left), f(self.right), f(self.targets), None if self.targets_fine is None else f(self.targets_fine),
                      self.per_set, None if self.source_depth is None else f(self.source_depth),
-                     None if self.truth_depth is None else f(self.truth_depth))
+                     None if self.truth_depth is None else f(self.truth_depth),
+                     None if self.view_truth is None else f(self.view_truth))
 
     def to(self, device, non_blocking: bool = False) -> "Batch":
         """The batch on the model's device (built on the CPU, by the loader or its workers)."""
@@ -220,8 +244,12 @@ class Stage1Loss(nn.Module):
 
 
 class Stage2Loss(nn.Module):
-    def __init__(self, model: SplatSAP, weights: LossWeights, mvs_depth: float = 0.0, depth_supervision: DepthSupervision | None = None):
+    def __init__(self, model: SplatSAP, weights: LossWeights, mvs_depth: float = 0.0, depth_supervision: DepthSupervision | None = None,
+                 view_depth: float = 0.0, person: float = 0.0):
         super().__init__()
+        # TrainConfig.view_depth: the refined depth of the views against their truth (person: its person weight).
+        self.view_depth = view_depth
+        self.person = person
         # Where stage 2 trains stage 1 too, the supervised recipe's depth terms keep holding it (as the MVS term does).
         self.depth_supervision = depth_supervision
         self.model = model
@@ -250,10 +278,15 @@ class Stage2Loss(nn.Module):
             l_truth, truth_parts = truth_depth_terms(_Firsts(a, n), p.conf_left[::n], p.conf_right[::n], L, R,
                                                      batch.truth_depth, self.depth_supervision)
             loss = loss + l_truth
+        l_view = None
+        if self.view_depth > 0 and batch.view_truth is not None:
+            l_view = view_depth_error(out["refined"].depth, batch.view_truth, self.person)
+            loss = loss + self.view_depth * l_view
         with torch.no_grad():
             mse = ((out["image"] - T.images) ** 2).mean()
             metrics = {"loss": float(loss), "fine": float(l_fine), "render": float(l_render),
                        **({"mvs": float(l_mvs)} if l_mvs is not None else {}), **truth_parts,
+                       **({"view_depth": float(l_view)} if l_view is not None else {}),
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10)))}
         check_finite(2, metrics["loss"])
         return loss, metrics, {"render": out["image"].detach(), "truth": T.images}

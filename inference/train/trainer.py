@@ -44,7 +44,7 @@ from inference.train.data import CachedViews, FrameSource, Preprocessor, stack_v
 from inference.train.plots import save_loss_curve, save_samples
 from inference.train.depth_supervision import TruthDepth, truth_missing
 from inference.train.multiview_depth import source_depths
-from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss, TrainingDiverged
+from inference.train.stages import Batch, SourceDepth, Stage1Loss, Stage2Loss, TrainingDiverged, ViewTruth
 
 CHECKPOINT = "checkpoint.pt"
 FINAL = "model.pt"
@@ -98,8 +98,31 @@ class BatchMaker:
                 truths.append(self._truth_depth(index))
         source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]) for k in range(4))) if depths else None
         truth_depth = TruthDepth(*(torch.stack([d[k] for d in truths]) for k in range(6))) if truths else None
+        view_truth = None
+        if stage == 2 and self.truth and self.cfg.view_depth > 0:
+            per_view = [t for index, sup in items for t in self._view_truth(index, sup)]
+            view_truth = ViewTruth(*(torch.stack([v[k] for v in per_view]) for k in range(3)))
         return Batch(stack_views(lefts), stack_views(rights), stack_views(targets),
-                     stack_views(fines) if fines else None, len(items[0][1]), source_depth, truth_depth)
+                     stack_views(fines) if fines else None, len(items[0][1]), source_depth, truth_depth, view_truth)
+
+    def _view_truth(self, index: int, cameras: list[str]) -> list[tuple[torch.Tensor, ...]]:
+        """Ground-truth depth of supervision views at the fine size, as `_truth_depth` resamples the
+        sources' (depth, where it holds, person mask), in the order of `cameras`. Not cached: four
+        views' truth at the fine size is about 2 MB a set, and rendering it costs a few per cent of
+        a step."""
+        fine = self.cfg.model.sizes.fine
+        fs = self.source.frame_set(index, with_truth=True)
+        out = []
+        for cam in cameras:
+            depth = fs.depth.get(cam)
+            if depth is None:
+                raise InferenceError(truth_missing(fs.key or f"frame set {index}"))
+            z = torch.from_numpy(np.ascontiguousarray(self.views.pre.depth(depth, fs.cameras[cam], fine), dtype=np.float32))
+            mask = fs.masks.get(cam)
+            person = (torch.from_numpy(self.views.pre.depth(mask.astype(np.float32), fs.cameras[cam], fine) > 0.5) if mask is not None
+                      else torch.zeros_like(z, dtype=torch.bool))
+            out.append((z, z > 0, person))
+        return out
 
     def _truth_depth(self, index: int) -> tuple[torch.Tensor, ...]:
         """Ground-truth depth of both sources at the coarse size, resampled onto their pinhole images
@@ -410,7 +433,8 @@ class Trainer:
         module = (Stage1Loss(m, w, self.cfg.point_radius, self.cfg.render_scales, self.cfg.plane_render, self.cfg.mvs_depth, truth,
                              self.cfg.stage1_render) if stage == 1
                   else Stage2Loss(m, w, self.cfg.mvs_depth if self.cfg.stage2_trains_stage1 > 0 else 0.0,
-                                  truth if self.cfg.stage2_trains_stage1 > 0 else None))
+                                  truth if self.cfg.stage2_trains_stage1 > 0 else None,
+                                  self.cfg.view_depth if self.cfg.supervised else 0.0, self.cfg.depth_supervision.person))
         if self.world > 1:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
         return module, param_groups

@@ -275,3 +275,48 @@ def test_reading_the_truth_of_many_takes_keeps_only_the_last_few_scenes(tmp_path
     # A take let go renders its truth again when read.
     again = data.frame_set(first_of[0], with_truth=True)
     assert all(d is not None for d in again.depth.values())
+
+
+def test_the_view_depth_term_is_zero_for_the_truth_and_weighs_the_people_again():
+    from inference.train.stages import ViewTruth, view_depth_error
+
+    z, mask = _truth(shape=(2, 24, 32))
+    person = torch.zeros_like(mask)
+    person[:, 8:16, 10:20] = True
+    truth = ViewTruth(z, mask, person)
+    assert float(view_depth_error(z[:, None], truth, 2.0)) == pytest.approx(0.0, abs=1e-6)
+    off = z.clone()
+    off[person] *= 1.2  # only the people 20 % too far
+    plain = float(view_depth_error(off[:, None], truth, 0.0))
+    weighted = float(view_depth_error(off[:, None], truth, 2.0))
+    share = float((person & mask).sum() / mask.sum())
+    assert plain == pytest.approx(np.log(1.2) * share, rel=0.05)
+    assert weighted == pytest.approx(plain + 2.0 * np.log(1.2), rel=0.01)
+
+
+def test_view_depth_is_a_weight_of_the_supervised_recipe_only():
+    assert TrainConfig.from_dict({"recipe": "supervised", "view_depth": 1.0}).view_depth == 1.0
+    with pytest.raises(InferenceError, match="view_depth.*supervised recipe"):
+        TrainConfig.from_dict({"view_depth": 1.0})
+    for bad in (-1, True, float("nan"), "1"):
+        with pytest.raises(InferenceError, match="view_depth"):
+            TrainConfig.from_dict({"recipe": "supervised", "view_depth": bad})
+
+
+@pytest.mark.slow
+def test_stage_2_with_view_depth_pulls_the_refined_depth_towards_the_views_truth(take, tmp_path):
+    """view_depth > 0: every stage-2 step logs the refined depth's error against the supervision
+    view's truth, and a few steps on one frame set bring it down."""
+    from inference.train.trainer import Trainer
+    from rig.storage.dataset import TrainingSet
+
+    cfg = _config("supervised", 0)
+    cfg.stage2.steps, cfg.stage2.batch, cfg.stage2.warmup, cfg.stage2.lr = 6, 1, 0, 2e-3
+    cfg.view_depth = 5.0
+    cfg.frame_stride = 2  # one frame set of the take's two
+    trainer = Trainer(cfg, TrainingSet([take]), tmp_path / "run", device=torch.device("cpu"))
+    trainer.run()
+    steps = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    errors = [r["view_depth"] for r in steps if not r.get("eval")]
+    assert len(errors) == 6 and all(np.isfinite(errors))
+    assert min(errors[-2:]) < errors[0], errors
