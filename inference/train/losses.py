@@ -46,6 +46,14 @@ def rendering_loss(pred: torch.Tensor, truth: torch.Tensor, beta_l1: float = 0.8
     return beta_l1 * (pred - truth).abs().mean() + beta_ssim * (1.0 - ssim(pred, truth))
 
 
+def masked_rendering_loss(pred: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, beta_l1: float = 0.8, beta_ssim: float = 0.2) -> torch.Tensor:
+    """rendering_loss over the pixels of `mask` (B, H, W) alone: per item over its masked pixels (0
+    for an item without any), then over the batch (data-parallel processes step as one)."""
+    m = mask.to(pred.dtype).flatten(1)
+    per_pixel = beta_l1 * (pred - truth).abs().mean(1) + beta_ssim * (1.0 - ssim_map(pred, truth).mean(1))
+    return ((per_pixel.flatten(1) * m).sum(1) / m.sum(1).clamp(min=1.0)).mean()
+
+
 def point_colour_set(points: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
     """A point map (B, 3, H, W) and its image (B, 3, H, W) as a 6-D point set (B, H*W, 6)."""
     b = points.shape[0]

@@ -33,7 +33,7 @@ from inference.train.chamfer import chamfer_6d
 from inference.train.config import LossWeights
 from inference.train.data import Views
 from inference.train.depth_supervision import DepthSupervision, TruthDepth, depth_terms
-from inference.train.losses import point_colour_set, rendering_loss
+from inference.train.losses import masked_rendering_loss, point_colour_set, rendering_loss
 from inference.train.point_splat import PointSplatConfig, splat_points
 
 
@@ -245,8 +245,9 @@ class Stage1Loss(nn.Module):
 
 class Stage2Loss(nn.Module):
     def __init__(self, model: SplatSAP, weights: LossWeights, mvs_depth: float = 0.0, depth_supervision: DepthSupervision | None = None,
-                 view_depth: float = 0.0, person: float = 0.0):
+                 view_depth: float = 0.0, person: float = 0.0, render_person: float = 0.0):
         super().__init__()
+        self.render_person = render_person  # TrainConfig.render_person: the rendering losses again on the people
         # TrainConfig.view_depth: the refined depth of the views against their truth (person: its person weight).
         self.view_depth = view_depth
         self.person = person
@@ -278,6 +279,13 @@ class Stage2Loss(nn.Module):
             l_truth, truth_parts = truth_depth_terms(_Firsts(a, n), p.conf_left[::n], p.conf_right[::n], L, R,
                                                      batch.truth_depth, self.depth_supervision)
             loss = loss + l_truth
+        l_people = None
+        if self.render_person > 0 and batch.view_truth is not None:
+            fine_mask = batch.view_truth.person
+            out_mask = F.interpolate(fine_mask[:, None].to(colour.dtype), size=out["image"].shape[-2:], mode="nearest")[:, 0] > 0.5
+            l_people = (self.w.lambda_fine * masked_rendering_loss(colour, batch.targets_fine.images, fine_mask, self.w.beta_l1, self.w.beta_ssim)
+                        + self.w.lambda_render * masked_rendering_loss(out["image"], T.images, out_mask, self.w.beta_l1, self.w.beta_ssim))
+            loss = loss + self.render_person * l_people
         l_view = None
         if self.view_depth > 0 and batch.view_truth is not None:
             l_view = view_depth_error(out["refined"].depth, batch.view_truth, self.person)
@@ -287,6 +295,7 @@ class Stage2Loss(nn.Module):
             metrics = {"loss": float(loss), "fine": float(l_fine), "render": float(l_render),
                        **({"mvs": float(l_mvs)} if l_mvs is not None else {}), **truth_parts,
                        **({"view_depth": float(l_view)} if l_view is not None else {}),
+                       **({"render_person": float(l_people)} if l_people is not None else {}),
                        "psnr": float(-10.0 * torch.log10(mse.clamp(min=1e-10)))}
         check_finite(2, metrics["loss"])
         return loss, metrics, {"render": out["image"].detach(), "truth": T.images}

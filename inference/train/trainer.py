@@ -99,7 +99,7 @@ class BatchMaker:
         source_depth = SourceDepth(*(torch.stack([d[k] for d in depths]) for k in range(4))) if depths else None
         truth_depth = TruthDepth(*(torch.stack([d[k] for d in truths]) for k in range(6))) if truths else None
         view_truth = None
-        if stage == 2 and self.truth and self.cfg.view_depth > 0:
+        if stage == 2 and self.truth and (self.cfg.view_depth > 0 or self.cfg.render_person > 0):
             per_view = [t for index, sup in items for t in self._view_truth(index, sup)]
             view_truth = ViewTruth(*(torch.stack([v[k] for v in per_view]) for k in range(3)))
         return Batch(stack_views(lefts), stack_views(rights), stack_views(targets),
@@ -434,7 +434,8 @@ class Trainer:
                              self.cfg.stage1_render) if stage == 1
                   else Stage2Loss(m, w, self.cfg.mvs_depth if self.cfg.stage2_trains_stage1 > 0 else 0.0,
                                   truth if self.cfg.stage2_trains_stage1 > 0 else None,
-                                  self.cfg.view_depth if self.cfg.supervised else 0.0, self.cfg.depth_supervision.person))
+                                  self.cfg.view_depth if self.cfg.supervised else 0.0, self.cfg.depth_supervision.person,
+                                  self.cfg.render_person if self.cfg.supervised else 0.0))
         if self.world > 1:
             module = DistributedDataParallel(module, device_ids=[self.device.index] if self.device.type == "cuda" else None)
         return module, param_groups

@@ -306,17 +306,48 @@ def test_view_depth_is_a_weight_of_the_supervised_recipe_only():
 @pytest.mark.slow
 def test_stage_2_with_view_depth_pulls_the_refined_depth_towards_the_views_truth(take, tmp_path):
     """view_depth > 0: every stage-2 step logs the refined depth's error against the supervision
-    view's truth, and a few steps on one frame set bring it down."""
+    view's truth, and a few steps on one frame set bring it down; render_person > 0 logs the
+    rendering losses on the person pixels."""
     from inference.train.trainer import Trainer
     from rig.storage.dataset import TrainingSet
 
     cfg = _config("supervised", 0)
     cfg.stage2.steps, cfg.stage2.batch, cfg.stage2.warmup, cfg.stage2.lr = 6, 1, 0, 2e-3
     cfg.view_depth = 5.0
+    cfg.render_person = 1.0
     cfg.frame_stride = 2  # one frame set of the take's two
     trainer = Trainer(cfg, TrainingSet([take]), tmp_path / "run", device=torch.device("cpu"))
     trainer.run()
     steps = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     errors = [r["view_depth"] for r in steps if not r.get("eval")]
     assert len(errors) == 6 and all(np.isfinite(errors))
+    assert all(np.isfinite(r["render_person"]) and r["render_person"] > 0 for r in steps if not r.get("eval"))
     assert min(errors[-2:]) < errors[0], errors
+
+
+def test_the_masked_rendering_loss_reads_the_masked_pixels_alone():
+    from inference.train.losses import masked_rendering_loss, rendering_loss
+
+    g = torch.Generator().manual_seed(3)
+    truth = torch.rand(2, 3, 40, 48, generator=g)
+    pred = truth.clone()
+    mask = torch.zeros(2, 40, 48, dtype=torch.bool)
+    mask[:, 10:30, 12:36] = True
+    pred[:, :, :5] = 0.0  # wrong outside the mask only, and far enough from it for SSIM's window
+    assert float(masked_rendering_loss(pred, truth, mask)) == pytest.approx(0.0, abs=1e-6)
+    assert float(rendering_loss(pred, truth)) > 0.01
+    inside = pred.clone()
+    inside[:, :, 18:22, 20:28] = 1.0 - truth[:, :, 18:22, 20:28]
+    assert float(masked_rendering_loss(inside, truth, mask)) > 0.01
+    # An item without any masked pixel adds nothing (and no NaN).
+    empty = torch.zeros_like(mask)
+    assert float(masked_rendering_loss(inside, truth, empty)) == 0.0
+
+
+def test_render_person_is_a_weight_of_the_supervised_recipe_only():
+    assert TrainConfig.from_dict({"recipe": "supervised", "render_person": 2.0}).render_person == 2.0
+    with pytest.raises(InferenceError, match="render_person.*supervised recipe"):
+        TrainConfig.from_dict({"render_person": 1.0})
+    for bad in (-1, True, float("inf")):
+        with pytest.raises(InferenceError, match="render_person"):
+            TrainConfig.from_dict({"recipe": "supervised", "render_person": bad})
