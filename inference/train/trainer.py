@@ -110,19 +110,19 @@ class BatchMaker:
         sources' (depth, where it holds, person mask), in the order of `cameras`. Not cached: four
         views' truth at the fine size is about 2 MB a set, and rendering it costs a few per cent of
         a step."""
-        fine = self.cfg.model.sizes.fine
         fs = self.source.frame_set(index, with_truth=True)
-        out = []
-        for cam in cameras:
-            depth = fs.depth.get(cam)
-            if depth is None:
-                raise InferenceError(truth_missing(fs.key or f"frame set {index}"))
-            z = torch.from_numpy(np.ascontiguousarray(self.views.pre.depth(depth, fs.cameras[cam], fine), dtype=np.float32))
-            mask = fs.masks.get(cam)
-            person = (torch.from_numpy(self.views.pre.depth(mask.astype(np.float32), fs.cameras[cam], fine) > 0.5) if mask is not None
-                      else torch.zeros_like(z, dtype=torch.bool))
-            out.append((z, z > 0, person))
-        return out
+        return [self._camera_truth(fs, index, cam, self.cfg.model.sizes.fine) for cam in cameras]
+
+    def _camera_truth(self, fs, index: int, cam: str, size: tuple[int, int]) -> tuple[torch.Tensor, ...]:
+        """One camera's ground-truth depth at `size` (nearest, onto its pinhole image), where it holds, and its person mask."""
+        depth = fs.depth.get(cam)
+        if depth is None:
+            raise InferenceError(truth_missing(fs.key or f"frame set {index}"))
+        z = torch.from_numpy(np.ascontiguousarray(self.views.pre.depth(depth, fs.cameras[cam], size), dtype=np.float32))
+        mask = fs.masks.get(cam)
+        person = (torch.from_numpy(self.views.pre.depth(mask.astype(np.float32), fs.cameras[cam], size) > 0.5) if mask is not None
+                  else torch.zeros_like(z, dtype=torch.bool))
+        return z, z > 0, person
 
     def _truth_depth(self, index: int) -> tuple[torch.Tensor, ...]:
         """Ground-truth depth of both sources at the coarse size, resampled onto their pinhole images
@@ -135,14 +135,7 @@ class BatchMaker:
         fs = src.frame_set(index, with_truth=True)
         out = []
         for cam in (src.left, src.right):
-            depth = fs.depth.get(cam)
-            if depth is None:
-                raise InferenceError(truth_missing(fs.key or f"frame set {index}"))
-            z = torch.from_numpy(np.ascontiguousarray(self.views.pre.depth(depth, fs.cameras[cam], coarse), dtype=np.float32))
-            mask = fs.masks.get(cam)
-            person = (torch.from_numpy(self.views.pre.depth(mask.astype(np.float32), fs.cameras[cam], coarse) > 0.5) if mask is not None
-                      else torch.zeros_like(z, dtype=torch.bool))
-            out += [z, z > 0, person]
+            out += self._camera_truth(fs, index, cam, coarse)
         self._truth[index] = tuple(out)
         return self._truth[index]
 

@@ -133,6 +133,16 @@ def test_the_translation_gate_scales_t_by_each_points_opacity():
         Stage1Config(translation_gate=-1.0)
 
 
+def off_ray_pixels(out, left, right, r2l) -> float:
+    """How far (pixels, the worst point of either view) stage 1's points project from the pixel
+    they came from in their own camera."""
+    cw, ch = COARSE
+    grid = pixel_rays(torch.eye(3)[None], cw, ch)[:, :2]
+    uv_l, _ = project(out.points_left, t(left.K))
+    uv_r, _ = project(transform_points(invert_pose(r2l), out.points_right), t(right.K))
+    return max(float((uv_l - grid).abs().max()), float((uv_r - grid).abs().max()))
+
+
 def test_translation_along_rays_keeps_every_point_on_its_pixels_ray():
     """translation_along_rays: T keeps its part along each pixel's ray, so a point projects back
     onto the pixel it came from in its own camera, the right view's too."""
@@ -144,13 +154,8 @@ def test_translation_along_rays_keeps_every_point_on_its_pixels_ray():
         torch.nn.init.normal_(layer.translation.delta[-1].weight, std=0.2)
         with torch.no_grad():
             outs[along] = layer(pm, t(left.K), t(right.K), r2l)
-    cw, ch = COARSE
-    grid = pixel_rays(torch.eye(3)[None], cw, ch)[:, :2]
-    l2r = invert_pose(r2l)
     for along, out in outs.items():
-        uv_l, _ = project(out.points_left, t(left.K))
-        uv_r, _ = project(transform_points(l2r, out.points_right), t(right.K))
-        off = max(float((uv_l - grid).abs().max()), float((uv_r - grid).abs().max()))
+        off = off_ray_pixels(out, left, right, r2l)
         assert (off < 1e-2) if along else (off > 0.5), (along, off)
     # What is left of T is its projection: no longer than T, and along the ray.
     assert (outs[True].translation_left.norm(dim=1) <= outs[False].translation_left.norm(dim=1) + 1e-6).all()
@@ -172,13 +177,8 @@ def test_an_isotropic_scale_keeps_points_on_their_rays_where_three_factors_move_
         with torch.no_grad():
             layer.scale_head.mlp[-1].bias.copy_(torch.tensor([0.1, -0.25, 0.0]))  # x 1.1, y 0.78, z 1 times
             outs[iso] = layer(pm, t(left.K), t(right.K), r2l)
-    cw, ch = COARSE
-    grid = pixel_rays(torch.eye(3)[None], cw, ch)[:, :2]
-    l2r = invert_pose(r2l)
     for iso, out in outs.items():
-        uv_l, _ = project(out.points_left, t(left.K))
-        uv_r, _ = project(transform_points(l2r, out.points_right), t(right.K))
-        off = max(float((uv_l - grid).abs().max()), float((uv_r - grid).abs().max()))
+        off = off_ray_pixels(out, left, right, r2l)
         assert (off < 1e-2) if iso else (off > 2.0), (iso, off)
     # The same depth in the left camera either way (within what T, which reads the scaled points,
     # changes): only x and y differ.
