@@ -170,16 +170,12 @@ class TrainConfig:
                                  "and the recipe is self-supervised (give the supervised recipe, or a weight above 0)")
         if not (isinstance(self.mvs_depth, (int, float)) and self.mvs_depth >= 0):
             raise InferenceError(f"mvs_depth must be a number >= 0, got {self.mvs_depth!r}")
-        if not (isinstance(self.view_depth, (int, float)) and not isinstance(self.view_depth, bool)
-                and self.view_depth >= 0 and math.isfinite(self.view_depth)):
-            raise InferenceError(f"view_depth must be a number >= 0, got {self.view_depth!r}")
-        if self.view_depth > 0 and not self.supervised:
-            raise InferenceError("view_depth reads the views' ground-truth depth: it needs the supervised recipe")
-        if not (isinstance(self.render_person, (int, float)) and not isinstance(self.render_person, bool)
-                and self.render_person >= 0 and math.isfinite(self.render_person)):
-            raise InferenceError(f"render_person must be a number >= 0, got {self.render_person!r}")
-        if self.render_person > 0 and not self.supervised:
-            raise InferenceError("render_person reads the views' person masks from the truth: it needs the supervised recipe")
+        for name, reads in (("view_depth", "the views' ground-truth depth"), ("render_person", "the views' person masks from the truth")):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 and math.isfinite(v)):
+                raise InferenceError(f"{name} must be a number >= 0, got {v!r}")
+            if v > 0 and not self.supervised:
+                raise InferenceError(f"{name} reads {reads}: it needs the supervised recipe")
         try:
             self.mvs.check()
         except ValueError as exc:
