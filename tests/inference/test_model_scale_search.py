@@ -78,25 +78,34 @@ def test_a_model_saved_without_the_key_keeps_it_off_and_bad_values_are_refused()
             Stage1Config(**bad)
 
 
-def ort_and_torch_factors(search: ScaleSearch, args: tuple) -> tuple[float, float]:
-    """The factor ONNX Runtime finds with the exported search, and torch's, on the same inputs."""
+@pytest.fixture(scope="module")
+def exported_search():
+    """ScaleSearch(21, 0.2) exported once at the scene's shapes (the graph does not depend on the
+    values): (the module, an ONNX Runtime session of it)."""
+    pm, (img_l, img_r), kl, kr, r2l = scene()
+    search = ScaleSearch(21, 0.2).eval()
     with torch.no_grad(), _quiet():
-        program = torch.onnx.export(search, args, dynamo=True, opset_version=18)
-    sess = ort.InferenceSession(program.model_proto.SerializeToString(), providers=["CPUExecutionProvider"])
+        program = torch.onnx.export(search, (pm.points_left, pm.points_right, img_l, img_r, kl, kr, r2l), dynamo=True, opset_version=18)
+    return search, ort.InferenceSession(program.model_proto.SerializeToString(), providers=["CPUExecutionProvider"])
+
+
+def ort_and_torch_factors(exported, args: tuple) -> tuple[float, float]:
+    """The factor ONNX Runtime finds with the exported search, and torch's, on the same inputs."""
+    search, sess = exported
     got = sess.run(None, {i.name: a.numpy() for i, a in zip(sess.get_inputs(), args)})[0]
     with torch.no_grad():
         ref = search(*args).numpy()
     return float(got[0]), float(ref[0])
 
 
-def test_onnx_runtime_finds_the_same_factor():
+def test_onnx_runtime_finds_the_same_factor(exported_search):
     pm, (img_l, img_r), kl, kr, r2l = scene()
     pts_l, pts_r = rescale(pm.points_left, pm.points_right, torch.tensor([1.07]), r2l)
-    got, ref = ort_and_torch_factors(ScaleSearch(21, 0.2).eval(), (pts_l, pts_r, img_l, img_r, kl, kr, r2l))
+    got, ref = ort_and_torch_factors(exported_search, (pts_l, pts_r, img_l, img_r, kl, kr, r2l))
     assert abs(got - ref) < 1e-5
 
 
-def test_onnx_runtime_finds_the_same_factor_where_no_factor_fits():
+def test_onnx_runtime_finds_the_same_factor_where_no_factor_fits(exported_search):
     """Two unrelated images (no scale re-projects one onto the other, as for rig model check's
     synthetic inputs): the candidates' errors lie within parts in a thousand of each other, and the
     softmin follows differences of 1e-7. Computed in float32, ONNX Runtime's rounding moved the factor
@@ -104,10 +113,9 @@ def test_onnx_runtime_finds_the_same_factor_where_no_factor_fits():
     pm, _, kl, kr, r2l = scene()
     rng = np.random.default_rng(4)
     blobs = lambda: torch.nn.functional.interpolate(torch.rand(1, 3, 12, 16, generator=torch.Generator().manual_seed(int(rng.integers(1e6)))), size=SIZE[::-1], mode="bicubic").clamp(0, 1)  # noqa: E731
-    search = ScaleSearch(21, 0.2).eval()
     worst = 0.0
     for _ in range(3):
-        got, ref = ort_and_torch_factors(search, (pm.points_left, pm.points_right, blobs(), blobs(), kl, kr, r2l))
+        got, ref = ort_and_torch_factors(exported_search, (pm.points_left, pm.points_right, blobs(), blobs(), kl, kr, r2l))
         worst = max(worst, abs(got / ref - 1.0))
     # measured 1.3e-7 (one float32 step of the factor); 8.7e-7 with the errors in float32
     assert worst < 4e-7
