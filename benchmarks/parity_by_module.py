@@ -1,7 +1,7 @@
 """Where an export's ONNX Runtime output leaves torch's: stage 1 module by module, and the float32 noise
 floor the whole model has in torch itself.
 
-    .venv/bin/python benchmarks/parity_by_module.py --model models/splat-sap-preview.onnx [--seed 0] [--checkpoint CKPT] [--json]
+    .venv/bin/python benchmarks/parity_by_module.py [--model M.onnx] [--seed 0] [--checkpoint CKPT] [--json]
 
 For every torch module of stage 1 whose output the exported stage-1 part also computes (matched by the
 exporter's name scopes and the tensor's shape), the largest difference of ONNX Runtime from torch
@@ -27,6 +27,7 @@ import onnxruntime as ort  # noqa: E402
 import torch  # noqa: E402
 
 from inference.model.checkpoint import model_from_record  # noqa: E402
+from inference.runtime.shipped import MODELS, NAME  # noqa: E402
 from inference.runtime.split import SplitPipeline  # noqa: E402
 from inference.runtime.synthetic import example_inputs  # noqa: E402
 
@@ -79,7 +80,8 @@ def ort_values(stage1_path: Path, feeds: dict[str, np.ndarray]) -> tuple[dict[st
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", type=Path, required=True, help="an exported model (.onnx; its stage-1 part is read beside it)")
+    ap.add_argument("--model", type=Path, default=MODELS / f"{NAME}.onnx",
+                    help="an exported model (.onnx; its stage-1 part is read beside it; default: the shipped one)")
     ap.add_argument("--checkpoint", type=Path, help="the checkpoint it was exported from (default: the one it records)")
     ap.add_argument("--seed", type=int, default=0, help="draw of the synthetic inputs (0: rig model check's)")
     ap.add_argument("--json", action="store_true")
