@@ -35,23 +35,40 @@ class FlashLed:
         self.epoch_ns = int(epoch_ns)
         self._times: list[float] = []  # edge times, sorted
         self._states: list[bool] = []  # the LED's state from that edge on
+        self._drawn_until = float("-inf")  # the latest exposure end a camera has drawn the LED for
         self._lock = threading.Lock()
 
     # --- the wire from the board ------------------------------------------------------------------
     def board_output(self, on: bool, host_ns: int) -> None:
         """The board's LED output changed at host monotonic time `host_ns`."""
-        self.set(bool(on), (host_ns - self.epoch_ns) / 1e9)
+        self.set_live(bool(on), (host_ns - self.epoch_ns) / 1e9)
 
     def set(self, on: bool, t: float) -> None:
+        """The LED's state from simulated time t on (a scripted signal: any t, in any order)."""
         with self._lock:
-            i = bisect.bisect_right(self._times, t)
-            self._times.insert(i, t)
-            self._states.insert(i, on)
+            self._insert(on, t)
 
-    def lit_seconds(self, t0: float, t1: float) -> float:
-        """How long the LED was on during [t0, t1] (the exact integral of its on/off signal)."""
+    def set_live(self, on: bool, t: float) -> None:
+        """The LED's state from t on, told as it happens (the emulated board's output). A thread
+        that tells it late on a loaded host (its state at t may reach the LED after a camera has
+        drawn a frame exposed past t) must not leave those frames dark and later ones lit: the
+        edge then comes at the end of the latest exposure drawn, so every camera sees one LED,
+        a step function of time, only later by that much."""
+        with self._lock:
+            self._insert(on, max(t, self._drawn_until))
+
+    def _insert(self, on: bool, t: float) -> None:
+        i = bisect.bisect_right(self._times, t)
+        self._times.insert(i, t)
+        self._states.insert(i, on)
+
+    def lit_seconds(self, t0: float, t1: float, drawn: bool = False) -> float:
+        """How long the LED was on during [t0, t1] (the exact integral of its on/off signal);
+        `drawn`: a camera draws an exposure ending at t1 with it (a live edge never comes before)."""
         with self._lock:
             times, states = list(self._times), list(self._states)
+            if drawn:
+                self._drawn_until = max(self._drawn_until, t1)
         total = 0.0
         i = bisect.bisect_right(times, t0)
         on = states[i - 1] if i > 0 else False
@@ -101,7 +118,7 @@ class FlashLed:
 
     def exposure_radiance(self, camera: CameraModel, t0: float, exposure_s: float, scene=None) -> Optional[np.ndarray]:
         """The LED's radiance (HxW) integrated over the exposure [t0, t0 + exposure_s]; None when dark."""
-        lit = self.lit_seconds(t0, t0 + exposure_s)
+        lit = self.lit_seconds(t0, t0 + exposure_s, drawn=True)
         if lit <= 0:
             return None
         depth = render(scene, camera, t0 + exposure_s / 2).depth if scene is not None else None

@@ -203,7 +203,7 @@ class SensorModel:
         if not self._led_cover:
             return image
         box, housing, cover = self._led_cover
-        lit = self.led.lit_seconds(t_start_s, t_start_s + exposure_s)
+        lit = self.led.lit_seconds(t_start_s, t_start_s + exposure_s, drawn=True)
         # radiance 1.0 is full scale over the nominal exposure: the light collected is level * lit time
         led = cover * np.float32(self.led.radiance_level * lit / NOMINAL_EXPOSURE_S * self.gain * 255.0)
         patch = image[box].astype(np.float32)

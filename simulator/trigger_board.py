@@ -319,18 +319,23 @@ class TriggerBoardEmulator:
             if not 1 <= ms <= MAX_FLASH_MS:
                 self._send("ERR", n, "RANGE", remember=True)
                 return
+            # The LED lights when the command is run, not when its line arrived (the handler may
+            # have waited for the lock), and whatever sees it is told before the replies are
+            # written: a thread held up between the two on a loaded host would otherwise let a
+            # camera draw frames past the flash's start without it.
+            now_us = self.clock.board_us(time.monotonic_ns())
             end_ns = self.clock.host_ns(now_us + ms * 1000)
             start_ns = self.clock.host_ns(now_us)
-            self.flashes.append(FlashTruth(now_us, start_ns, end_ns))
             lit_until = self.led_off_ns if self.led_off_ns is not None and start_ns < self.led_off_ns < end_ns else None
-            self.led_off_ns = end_ns
-            self._send("OK", n, remember=True)
-            self._send("FLASH", now_us, ms)
             for fn in list(self._led_outputs):
                 fn(True, start_ns)
                 if lit_until is not None:  # a flash still lit is extended: the end told for it does not come
                     fn(True, lit_until)
                 fn(False, end_ns)
+            self.flashes.append(FlashTruth(now_us, start_ns, end_ns))
+            self.led_off_ns = end_ns
+            self._send("OK", n, remember=True)
+            self._send("FLASH", now_us, ms)
         elif kind == "STATUS":
             self._send("STATUS", n, int(self.train_active), self.rate_mhz, self.width_us, self.next_index, self.bad_lines, remember=True)
 

@@ -37,7 +37,7 @@ def scene_led(config) -> Optional[Callable[[bool, int], None]]:
     from simulator.sensor import sim_rig
 
     led = sim_rig(config).led
-    return lambda on, host_ns: led.set(bool(on), (host_ns - SIM_EPOCH_NS) / 1e9)
+    return lambda on, host_ns: led.set_live(bool(on), (host_ns - SIM_EPOCH_NS) / 1e9)
 
 
 def emulated_trigger_board(uri: str, options: dict, outputs: list[Callable[[int, int], None]]):

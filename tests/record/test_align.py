@@ -90,7 +90,7 @@ def test_align_gives_free_running_frames_their_pulse_and_offset(take):
     assert set(report["cameras"]) == {"sup1", "sup2"}
     for name, cam in report["cameras"].items():
         assert cam["problem"] is None, cam
-        assert len([f for f in cam["flashes"] if "onset_ns" in f]) == 2
+        assert len([f for f in cam["flashes"] if "onset_ns" in f]) == 2, cam
         assert cam["placed"] >= cam["frames"] - 3, cam  # at most the frames beyond the take's first and last pulse
         # An onset in the sensor's dead time (30 ms exposures at 30 fps) is known to half the gap, and the
         # rate carries that to the take's ends: once 0.114 stated (a flash 0.0875 loose); the frames'

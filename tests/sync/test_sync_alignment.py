@@ -94,6 +94,28 @@ def test_a_flash_partway_through_an_exposure_lights_the_frame_in_proportion():
     assert ratio == pytest.approx(0.75, abs=0.005)  # noise-free: measured 0.748 (8-bit rounding)
 
 
+def test_a_flash_the_board_tells_late_starts_after_the_frames_already_drawn():
+    # On a loaded host the board's thread may tell the LED its flash began at t after a camera has
+    # drawn a frame exposed past t: that frame stays dark, and the flash must start where it ended
+    # for every frame drawn later, not at t (a frame lit less than the one before it is no flash).
+    rig = virtual_rig(1, 64, 36)
+    sensor = SensorModel(Scene(seed=0, people=0, name="empty"), rig.cameras[0], {"read_noise": 0.0, "shot_noise": 0.0}, gain_db=-18.0)
+    led = FlashLed((0.0, 1.5, 0.0), radius_m=0.15, epoch_ns=0)
+    src = led.image_source(sensor)
+    rng = np.random.default_rng(0)
+    dark = src(1.0, 0.03, rng).astype(float)  # drawn: exposure [1.0, 1.03]
+    led.board_output(True, 1_010_000_000)  # told afterwards: on from 1.01 s
+    led.board_output(False, 2_000_000_000)
+    assert led.lit_seconds(1.0, 1.03) == 0.0  # what that frame showed stays true
+    later = src(1.02, 0.03, rng).astype(float)  # [1.02, 1.05]: lit from 1.03, not from 1.01
+    full = src(1.1, 0.03, rng).astype(float)
+    spot = (full - dark).mean(axis=2) > 20
+    ratio = float((later - dark)[spot].sum() / (full - dark)[spot].sum())
+    assert ratio == pytest.approx(2 / 3, abs=0.01)
+    led.set(True, 0.5)  # a scripted signal is taken as given
+    assert led.lit_seconds(0.5, 0.6) == pytest.approx(0.1)
+
+
 def test_find_flash_reports_a_flash_in_the_dead_time_as_uncertain():
     period, exposure = 33.3e6, 10e6
     times = np.arange(40) * period
