@@ -12,6 +12,48 @@ import numpy as np
 HARDWARE = "hardware"
 TIMED = "timed"  # free-run or software-triggered: grouped by host time
 
+# The least-delay clock of a timed camera (LeastDelay): how fast the least delay may grow (the
+# camera's clock running slow against the host's: crystals are within 100 ppm, 500 allows for
+# more), and how late a frame may seem before its device clock is taken to have jumped.
+MAX_DRIFT = 500e-6
+RESYNC_NS = 500_000_000
+RESYNC_FRAMES = 3
+
+
+@dataclass
+class LeastDelay:
+    """How late a timed camera's frame reached the host, beyond the least delay its frames have
+    shown: host minus device time is the clocks' offset plus the delivery delay, so its running
+    minimum (allowed to grow by MAX_DRIFT as the clocks drift apart) is the offset plus the
+    fastest delivery, and a frame above it came that much late: its exposure began that much
+    earlier than its arrival says. The passive clock synchronisation of Olson (ICRA 2010), which
+    a loaded host needs: a frame delivered two periods late is otherwise taken for a later one.
+    A device clock that does not advance says nothing (lateness 0); one that jumps back, or
+    RESYNC_FRAMES frames in a row over RESYNC_NS late (a camera restarted), starts it afresh."""
+
+    offset_ns: Optional[float] = None
+    last_device_ns: Optional[int] = None
+    late_run: int = 0
+
+    def late_ns(self, device_ts_ns: int, host_ns: int) -> float:
+        delta = float(host_ns - device_ts_ns)
+        if self.offset_ns is None or self.last_device_ns is None or device_ts_ns <= self.last_device_ns:
+            self.offset_ns, self.last_device_ns, self.late_run = delta, device_ts_ns, 0
+            return 0.0
+        allowed = self.offset_ns + (device_ts_ns - self.last_device_ns) * MAX_DRIFT
+        self.last_device_ns = device_ts_ns
+        if delta - allowed > RESYNC_NS:
+            self.late_run += 1
+            self.offset_ns = delta if self.late_run >= RESYNC_FRAMES else allowed
+            return 0.0  # not believed until it repeats: the frame is placed by its arrival
+        self.late_run = 0
+        self.offset_ns = min(delta, allowed)
+        return delta - self.offset_ns
+
+    def reset(self) -> None:
+        self.offset_ns = self.last_device_ns = None
+        self.late_run = 0
+
 
 @dataclass
 class CameraCounters:
@@ -51,6 +93,7 @@ class CameraTrack:
     # timed: frames not yet claimed by a set, by host exposure-start time
     timed: deque = field(default_factory=deque)
     past_ns: int = -(2**62)  # host exposure-start time of the newest frame
+    delivery: LeastDelay = field(default_factory=LeastDelay)  # timed: how late each frame arrived
     alive: bool = True
 
     def anchor(self, board_ref: int, dev_ref: int) -> None:

@@ -147,6 +147,7 @@ class FrameGrouper:
             track.alive = True
             if not ids_continue:
                 track.last_seen_id = None
+                track.delivery.reset()  # a new acquisition: its clock may start afresh
             track.pending.clear()
 
     def add_frame(self, frame: Frame) -> None:
@@ -303,10 +304,14 @@ class FrameGrouper:
 
     # --- timed cameras and the reference camera ---------------------------------------------------
     def _exposure_start_host(self, frame: Frame) -> int:
+        """Host time of the frame's exposure start: its arrival less its exposure (the least a
+        frame takes to arrive) and less how late it came (its device clock against its earlier
+        frames': sync.camera_track.LeastDelay), or less the camera's known latency."""
         latency = self.latency_ns.get(frame.camera)
         if latency is not None:
             return frame.host_ts_ns - latency
-        return frame.host_ts_ns - int((frame.exposure_us or 0.0) * 1000)
+        late = self.tracks[frame.camera].delivery.late_ns(frame.device_ts_ns, frame.host_ts_ns)
+        return frame.host_ts_ns - int((frame.exposure_us or 0.0) * 1000) - int(late)
 
     def _add_reference(self, track: CameraTrack, frame: Frame) -> None:
         k = self.timeline.add_instant(self._exposure_start_host(frame))

@@ -185,6 +185,35 @@ def test_without_a_board_the_reference_camera_sets_the_instants():
     assert grouper.stats()["skew_us"]["p50"] == pytest.approx(2000, abs=1)
 
 
+def test_frames_a_loaded_host_delivers_late_are_placed_by_their_device_clocks():
+    # Two free-running 30 fps cameras, no board, clocks of their own (offsets, 40 ppm apart); on a
+    # loaded host each camera's thread stalls once for 80 ms (2.4 periods): the frames exposed
+    # meanwhile arrive together when it wakes. By arrival they belong to sets 2 periods later;
+    # by their device clocks against the camera's faster frames, to their own.
+    period = 1e9 / 30
+    exposure = 5_000_000
+    clocks = {"left": (123_456_789, 0.0), "right": (-987_654_321, 40e-6)}
+    stalls = {"left": (20, 80_000_000), "right": (45, 80_000_000)}  # from frame i's arrival, for so long
+    events = []
+    for name, (offset, drift) in clocks.items():
+        at, length = stalls[name]
+        wake = None
+        for i in range(90):
+            start = 10**12 + i * period + (2e6 if name == "right" else 0.0)
+            arrival = start + exposure + 300_000
+            if i == at:
+                wake = arrival + length
+            if wake is not None and arrival < wake:
+                arrival = wake + (i - at) * 200_000  # delivered in a burst, in order
+            device = int(offset + start * (1 + drift))
+            events.append((int(arrival), "frame", Frame(np.zeros((2, 2)), name, i + 1, device, int(arrival), exposure_us=exposure / 1000)))
+    grouper = FrameGrouper({"left": TIMED, "right": TIMED}, 30.0, reference="left")
+    sets = run(grouper, events, 10**12 + 100 * period)
+    assert len(sets) == 90
+    paired = [(s["left"].frame_id, s["right"].frame_id if s["right"] else None) for s in sets]
+    assert all(left == right for left, right in paired), [p for p in paired if p[0] != p[1]]
+
+
 def test_sets_wait_for_slow_cameras_but_not_forever():
     rng = np.random.default_rng(5)
     board = Board()
