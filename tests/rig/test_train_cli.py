@@ -261,10 +261,17 @@ def grow_cascade(takes, start: Path, out: Path, extra: dict | None = None) -> tu
     return out, torch.load(start, weights_only=True)["state_dict"], torch.load(out / "model.pt", weights_only=True)["state_dict"]
 
 
-def test_a_run_may_add_the_stereo_cascade_to_weights_trained_without_it(takes, light, whole, tmp_path):
+@pytest.fixture(scope="module")
+def grown(takes, whole, tmp_path_factory) -> tuple[Path, dict, dict]:
+    """The cascade grown on the whole run's model, its last layers at 50 times the rate (one run
+    for both tests below: each step of a run costs its start-up many times over)."""
+    return grow_cascade(takes, whole[0] / "model.pt", tmp_path_factory.mktemp("grown") / "cascade", {"lr_factors": {"point_init.cascade.": 50}})
+
+
+def test_a_run_may_add_the_stereo_cascade_to_weights_trained_without_it(takes, light, grown, tmp_path):
     """config.GROWN_FROM_ZERO: --init from a model without the cascade starts the cascade at zero
     (the same model until it trains); a model with one does not fit a run without."""
-    out, w0, w1 = grow_cascade(takes, whole[0] / "model.pt", tmp_path / "cascade")
+    out, w0, w1 = grown
     assert any(k.startswith("point_init.cascade.") for k in w1) and not any(k.startswith("point_init.cascade.") for k in w0)
     assert any(not torch.equal(w1[k], w0[k]) for k in w0 if k.startswith("point_init.") and w0[k].is_floating_point())
     r = rig("train", *takes, "-o", tmp_path / "back", *SMALL, "--config", light, "--batch", "1",
@@ -273,11 +280,11 @@ def test_a_run_may_add_the_stereo_cascade_to_weights_trained_without_it(takes, l
     assert "configuration" in r.stderr
 
 
-def test_lr_factors_give_a_module_grown_from_zero_its_own_rate(takes, light, whole, tmp_path):
+def test_lr_factors_give_a_module_grown_from_zero_its_own_rate(takes, grown, tmp_path):
     """lr_factors by parameter name prefix: Adam's first step moves each weight by about its rate, so
     the cascade added to trained weights (its last layers at zero) moves about 50 times as far as
     the rest of stage 1."""
-    _, w0, w1 = grow_cascade(takes, whole[0] / "model.pt", tmp_path / "fast", {"lr_factors": {"point_init.cascade.": 50}})
+    _, w0, w1 = grown
     zero = [k for k in w1 if k.startswith(("point_init.cascade.regularise.2.", "point_init.cascade.refine.2.", "point_init.cascade.confidence.2."))]
     assert zero and not any(k in w0 for k in zero)
     moved_grown = max(float(w1[k].abs().max()) for k in zero)  # they started at zero
