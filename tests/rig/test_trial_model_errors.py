@@ -105,7 +105,8 @@ def test_export_does_not_replace_an_onnx_named_file_that_is_no_export(tmp_path, 
 
 def test_export_replaces_an_earlier_export(tmp_path):
     out = _copy_model(tmp_path)  # an earlier export and its parts
-    proc = run_rig("model", "export", "--backbone", "stereo", "--size", "test", "-o", out, timeout=300)
+    # (any backbone replaces it alike: the oracle's, without a network, exports in the least time)
+    proc = run_rig("model", "export", "--backbone", "oracle", "--size", "test", "-o", out, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "wrote" in proc.stdout
 
