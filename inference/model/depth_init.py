@@ -65,25 +65,23 @@ def splat_depth(
     u0 = torch.round(u)
     v0 = torch.round(v)
     rho2 = (radius + 0.5) ** 2
-    idx_list, w_list, z_list = [], [], []
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            px = u0 + dx
-            py = v0 + dy
-            du = px - u
-            dv = py - v
-            d2 = du * du + dv * dv
-            e = (1.0 - d2 / rho2).clamp(min=0.0)
-            k = e * e
-            inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1) & (z > 1e-6)
-            weight = torch.where(inside, alpha * k, torch.zeros_like(k))
-            index = torch.where(inside, py * w + px, torch.zeros_like(px)).to(torch.int64)
-            idx_list.append(index)
-            w_list.append(weight)
-            z_list.append(torch.where(inside, z, torch.zeros_like(z)))
-    index = torch.cat(idx_list, dim=1)
-    weight = torch.cat(w_list, dim=1)
-    depth = torch.cat(z_list, dim=1)
+    # Every window offset at once, offset-major (dy outer, dx inner): (B, K, N) -> (B, K * N). One
+    # broadcast op per step instead of one per offset keeps the exported graph small.
+    offsets = torch.arange(-radius, radius + 1, dtype=u.dtype, device=u.device)
+    dy = offsets.repeat_interleave(2 * radius + 1)[None, :, None]
+    dx = offsets.repeat(2 * radius + 1)[None, :, None]
+    px = u0[:, None] + dx
+    py = v0[:, None] + dy
+    du = px - u[:, None]
+    dv = py - v[:, None]
+    d2 = du * du + dv * dv
+    e = (1.0 - d2 / rho2).clamp(min=0.0)
+    k = e * e
+    zk = z[:, None].expand_as(k)
+    inside = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1) & (zk > 1e-6)
+    weight = torch.where(inside, alpha[:, None] * k, torch.zeros_like(k)).reshape(b, -1)
+    index = torch.where(inside, py * w + px, torch.zeros_like(px)).to(torch.int64).reshape(b, -1)
+    depth = torch.where(inside, zk, torch.zeros_like(zk)).reshape(b, -1)
     total = torch.zeros(b, h * w, dtype=depth.dtype, device=depth.device).scatter_add(1, index, weight)
     if cfg.zbuffer == "occlusion":
         blend = _occlusion_blend(index, weight, depth, h * w, cfg)
