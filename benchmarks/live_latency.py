@@ -105,7 +105,7 @@ def main() -> int:
     ap.add_argument("--cameras", type=int, default=6)
     ap.add_argument("--size", default="640x360")
     ap.add_argument("--fps", type=float, default=30.0)
-    ap.add_argument("--threads", type=int, help="ONNX Runtime threads (default: all cores)")
+    ap.add_argument("--threads", type=int, help="ONNX Runtime threads (default: OMP_NUM_THREADS where it is set, else all cores)")
     ap.add_argument("--runs", type=int, default=4, help="model-alone runs before each block of the live run")
     ap.add_argument("--blocks", type=int, default=3, help="blocks the live run is cut into (model alone before each)")
     ap.add_argument("--viewer-nice", type=int, default=10,

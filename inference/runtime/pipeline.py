@@ -116,6 +116,14 @@ def read_model_info(session: ort.InferenceSession, path: Path) -> ModelInfo:
     )
 
 
+def _omp_threads() -> int | None:
+    """OMP_NUM_THREADS, where it is set to a count: the threads the user (or a scheduler sharing the
+    machine among processes) gives this process. ONNX Runtime does not read it; left to itself it
+    runs a spinning thread per core, which on cores other processes use spins against them."""
+    value = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return int(value) if value.isdigit() and int(value) > 0 else None
+
+
 def open_session(path: str | os.PathLike, providers: list[str] | None = None, threads: int | None = None, profile: str | None = None,
                  spinning: bool = True) -> ort.InferenceSession:
     """An ONNX Runtime session; `profile` is a file prefix that turns ONNX Runtime's profiler on.
@@ -129,6 +137,7 @@ def open_session(path: str | os.PathLike, providers: list[str] | None = None, th
     # ONNX Runtime logs a failed load (a truncated data file, a corrupt graph) to stderr itself, in
     # several lines, before it raises; the exception below says it in one, so only fatal logs print
     opts.log_severity_level = 4
+    threads = threads or _omp_threads()
     if threads:
         opts.intra_op_num_threads = threads
     if not spinning:

@@ -25,7 +25,7 @@ def register(sub) -> None:
     p.add_argument("--record-output", type=Path, metavar="FILE.mp4", help="also write the rendered view at --record-view to a video file")
     p.add_argument("--record-view", default="0.5", metavar="t|CAMERA", help="the viewpoint --record-output records: 0..1 from left to right, or a camera name (default 0.5)")
     p.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
-    p.add_argument("--threads", type=int, help="ONNX Runtime threads per model run (default: all cores)")
+    p.add_argument("--threads", type=int, help="ONNX Runtime threads per model run (default: OMP_NUM_THREADS where it is set, else all cores)")
     p.add_argument("--providers", nargs="+", help="ONNX Runtime execution providers, best first (default: TensorRT, CUDA, CPU as installed); "
                                                    "CUDAExecutionProvider and TensorrtExecutionProvider need onnxruntime-gpu (docs/live.md, GPU)")
     p.add_argument("--device", default="cpu", metavar="cpu|cuda[:N]",
