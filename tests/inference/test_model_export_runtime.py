@@ -144,6 +144,17 @@ NO_TORCH = textwrap.dedent(
 )
 
 
+def test_sessions_take_omp_num_threads_where_no_thread_count_is_given(tiny_onnx, monkeypatch):
+    # ONNX Runtime ignores OMP_NUM_THREADS: a process given one core ran a spinning thread per core
+    from inference.runtime import open_session
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert open_session(tiny_onnx.path).get_session_options().intra_op_num_threads == 1
+    assert open_session(tiny_onnx.path, threads=2).get_session_options().intra_op_num_threads == 2
+    monkeypatch.setenv("OMP_NUM_THREADS", "many")
+    assert open_session(tiny_onnx.path).get_session_options().intra_op_num_threads == 0  # ONNX Runtime's own default
+
+
 def test_runtime_runs_with_torch_absent(tiny_onnx):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.run([sys.executable, "-c", NO_TORCH, str(tiny_onnx.path)], capture_output=True, text=True, env=env, cwd=REPO, timeout=120)
