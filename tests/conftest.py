@@ -26,7 +26,8 @@ def pytest_configure(config):
         share = str(max(1, (os.cpu_count() or 1) // workers))
         # numpy's OpenBLAS spins its own threads too (it reads its variable when numpy loads, after
         # this hook): oversubscribed, its solves ran about 100 times slower under load
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        # (OpenCV's own pool reads OPENCV_FOR_THREADS_NUM; ONNX Runtime's sessions OMP_NUM_THREADS)
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM"):
             os.environ[var] = share
         import cv2
         import torch
