@@ -56,7 +56,7 @@ def get(url: str, timeout: float = 30.0) -> tuple[int, bytes]:
 
 def test_live_serves_a_simulated_rig_and_records_its_output(rig_toml, tiny_onnx, tmp_path):
     video = tmp_path / "out.mp4"
-    proc, url = start_live("-c", rig_toml, "--model", tiny_onnx.path, "--port", 0, "--seconds", 25, "--threads", 2,
+    proc, url = start_live("-c", rig_toml, "--model", tiny_onnx.path, "--port", 0, "--seconds", 15, "--threads", 1,
                            "--record-output", video, "--record-view", "sup2", "--json")
     try:
         base = url.split("?")[0]
