@@ -12,10 +12,13 @@ APT_PACKAGES := python3 python3-venv python3-dev gcc g++ libc6-dev make pkg-conf
 demo: install
 	$(VENV)/bin/rig demo
 
-# Two test processes, each with its share of the cores for torch and OpenCV (tests/conftest.py).
-# Three were 1m20s faster here but starved the real-time tests (GoPro streams, daemon restarts).
+# Three test processes on two cores, one thread each for torch, OpenCV and ONNX Runtime
+# (tests/conftest.py): a quarter of the suite's time is tests waiting on real time (daemons,
+# namespaced hosts, streams), which the third fills (747 s against 1035 s with two, here). The
+# files in our order, the long ones first (pytest-xdist would put the files of most tests first,
+# and the soak and the two-host tests, one test each, ran last, alone).
 test: install
-	$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile
+	$(PY) -m pytest -q -p no:cacheprovider -n 3 --dist loadfile --no-loadscope-reorder
 
 install: $(STAMP)
 
