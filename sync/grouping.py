@@ -11,8 +11,11 @@ the assignment right. Frame ids tell the two kinds of loss apart: a gap in ids i
 took and lost; a pulse skipped with no gap is a trigger the camera never answered.
 
 Cameras that cannot be triggered (free-run, or software triggers) are grouped by host time: the
-frame whose exposure start is nearest the pulse's host time, within half a period. With no trigger
-board at all, a reference camera's frames define the instants.
+frame whose exposure start is nearest the pulse's host time, within half a period. A frame's
+exposure start is its arrival less its exposure, less how much later than the camera's fastest
+frames it came by its device clock (sync.camera_track.LeastDelay): a host that falls behind for a
+moment delivers frames late, not from later exposures. With no trigger board at all, a reference
+camera's frames define the instants.
 
 A set is emitted once every camera is past its pulse (cameras deliver in order) or its time is up,
 never before; a camera with nothing for a pulse leaves None there (a detected drop). Frames of two
