@@ -54,7 +54,7 @@ from inference.config import STAGES
 from inference.errors import InferenceError, OutputError
 from inference.model.checkpoint import seed_record
 from inference.model.pipeline import INPUT_NAMES, OUTPUT_NAMES, STAGE1_OUTPUT_NAMES, SplatSAP
-from inference import onnx_weights
+from inference import onnx_weights, onnx_precision
 from inference.onnx_weights import WeightStore, detach, has_detached, is_detached, write_models
 from inference.runtime.split import TARGET_INPUTS, UNSCALED_PART, part_path
 from inference.runtime.synthetic import example_inputs
@@ -313,6 +313,7 @@ def _trace(model: SplatSAP, arrays: dict[str, np.ndarray], opset: int, optimize:
     else:
         _fold_constants(program.model)
     traced = program.model_proto
+    onnx_precision.rewrite(traced)
     slimmed = slim_constants(traced, keep={n for n, _ in model.named_parameters()})
     slimmed["node_metadata_bytes"] = strip_node_metadata(traced)
     return traced, slimmed
