@@ -207,6 +207,12 @@ class DepthInitConfig:
     fill_levels: int = 6  # push-pull levels that fill pixels no point reached
     # A point's coverage is its stage-1 opacity raised to this power (0: every point covers fully).
     opacity_power: float = 1.0
+    # Splat at 1/scale of the fine size (radius in those pixels), then resize the filled depth to
+    # the fine size (`upsample`: "nearest" keeps a person's edge against the wall behind as one
+    # depth or the other; "bilinear" blends them). scale 2 with radius 2 covers what radius 4 covers
+    # at the fine size with a ninth of the histogram and a third of the splats (docs/model.md).
+    scale: int = 1
+    upsample: str = "nearest"
 
     def __post_init__(self) -> None:
         if self.zbuffer not in ZBUFFERS:
@@ -219,6 +225,10 @@ class DepthInitConfig:
             raise InferenceError(f"depth_init: occlusion_gain must be >= 0, got {self.occlusion_gain}")
         if not (isinstance(self.opacity_power, (int, float)) and self.opacity_power >= 0):
             raise InferenceError(f"depth_init: opacity_power must be >= 0, got {self.opacity_power!r}")
+        if self.scale not in (1, 2, 4):
+            raise InferenceError(f"depth_init: scale must be 1, 2 or 4, got {self.scale!r}")
+        if self.upsample not in ("nearest", "bilinear"):
+            raise InferenceError(f"depth_init: upsample must be nearest or bilinear, got {self.upsample!r}")
 
 
 @dataclass

@@ -32,7 +32,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from inference.config import DepthInitConfig
-from inference.model.geometry import project, transform_points
+from inference.model.geometry import project, resize_intrinsics, transform_points
 
 FRONT_RANGE = 8.0  # "reference": a nearer surface is preferred by at most e^8 (in units of weight)
 
@@ -160,6 +160,14 @@ class DepthInit(nn.Module):
         b = points_left.shape[0]
         pts = torch.cat([points_left.reshape(b, 3, -1), points_right.reshape(b, 3, -1)], dim=2)
         op = torch.cat([opacity_left.reshape(b, 1, -1), opacity_right.reshape(b, 1, -1)], dim=2)
-        raw, cov = splat_depth(pts, op, left_to_target, target_K, self.size, self.cfg)
-        filled = push_pull_fill(raw, cov, self.cfg.fill_levels)
-        return SplatDepth(filled, cov, raw)
+        scale = self.cfg.scale
+        if scale == 1:
+            raw, cov = splat_depth(pts, op, left_to_target, target_K, self.size, self.cfg)
+            return SplatDepth(push_pull_fill(raw, cov, self.cfg.fill_levels), cov, raw)
+        w, h = self.size
+        small = (-(-w // scale), -(-h // scale))
+        raw, cov = splat_depth(pts, op, left_to_target, resize_intrinsics(target_K, self.size, small), small, self.cfg)
+        filled = push_pull_fill(raw, cov, max(self.cfg.fill_levels - (scale.bit_length() - 1), 1))
+        up = (lambda x: F.interpolate(x, size=(h, w), mode="nearest")) if self.cfg.upsample == "nearest" else \
+            (lambda x: F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False))
+        return SplatDepth(up(filled), F.interpolate(cov, size=(h, w), mode="nearest"), F.interpolate(raw, size=(h, w), mode="nearest"))

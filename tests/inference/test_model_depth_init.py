@@ -138,7 +138,8 @@ def test_opacity_power_zero_lets_an_unsure_nearer_surface_occlude():
 def test_the_configuration_is_checked():
     from inference.errors import InferenceError
 
-    for bad in ({"zbuffer": "hard"}, {"radius": -1}, {"occlusion_margin": 0.1}, {"depth_bin": 0.0}, {"opacity_power": -1.0}):
+    for bad in ({"zbuffer": "hard"}, {"radius": -1}, {"occlusion_margin": 0.1}, {"depth_bin": 0.0}, {"opacity_power": -1.0},
+                {"scale": 3}, {"upsample": "cubic"}):
         with pytest.raises(InferenceError, match="depth_init"):
             DepthInitConfig(**bad)
 
@@ -156,3 +157,34 @@ def test_push_pull_fills_holes_from_their_surroundings():
     hole = filled[0, 0, 10:20, 10:20].numpy()
     # Measured 0.040 above the left neighbour and 0.051 below the right one at the extremes.
     assert np.all(hole > ramp[0, 0, 0, 9].item()) and np.all(hole < ramp[0, 0, 0, 20].item())
+
+
+def _two_planes(cfg: DepthInitConfig) -> torch.Tensor:
+    """Depth init at SIZE of a near plane over the left half in front of a far plane."""
+    near = plane_points(2.0)
+    near = near[:, :, (near[0, 0] / near[0, 2]) < 0]
+    pts = torch.cat([plane_points(4.0), near], dim=2)
+    n = pts.shape[2]
+    half = n // 2
+    init = DepthInit(cfg, SIZE)
+    return init(pts[:, :, :half].reshape(1, 3, 1, -1), pts[:, :, half:].reshape(1, 3, 1, -1),
+                torch.ones(1, 1, 1, half), torch.ones(1, 1, 1, n - half), EYE, K)
+
+
+def test_half_resolution_depth_init_keeps_the_fine_size_and_each_surface_its_depth():
+    fine = _two_planes(DepthInitConfig(radius=4, occlusion_gain=2.5))
+    half = _two_planes(DepthInitConfig(radius=2, occlusion_gain=2.5, scale=2))
+    blended = _two_planes(DepthInitConfig(radius=2, occlusion_gain=2.5, scale=2, upsample="bilinear"))
+    for out in (fine, half, blended):
+        assert out.depth.shape == (1, 1, SIZE[1], SIZE[0])
+        assert out.coverage.shape == out.raw_depth.shape == out.depth.shape
+    d = half.depth[0, 0]
+    # Away from the edge (x = 31.5) each side has its own plane's depth, as at the fine size.
+    for out in (fine, half):
+        assert torch.allclose(out.depth[0, 0, :, :26], torch.full((SIZE[1], 26), 2.0), rtol=1e-4)
+        assert torch.allclose(out.depth[0, 0, :, 38:], torch.full((SIZE[1], SIZE[0] - 38), 4.0), rtol=1e-4)
+    # Nearest upsampling leaves no depth between the two surfaces (within the occlusion blend's 1 %);
+    # bilinear blends them across the edge.
+    between = lambda x: ((x > 2.02) & (x < 3.96)).sum().item()  # noqa: E731
+    assert between(d) <= between(fine.depth[0, 0])
+    assert between(blended.depth[0, 0]) > between(d)
