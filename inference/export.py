@@ -19,6 +19,10 @@ replaces each large one whose elements are all equal by a ConstantOfShape node, 
 integer-step ramp (a pixel coordinate grid, or a few of them stacked) by Range, Reshape and Expand
 (Concat for a stack), which compute the same values exactly; ONNX Runtime folds them again at load.
 
+ONNX Runtime's CPU kernels add long reductions up in float32 one element at a time, several times
+torch's rounding; the traced graph's ReduceSum, ReduceMean and GroupNorm statistics are computed in
+float64 (inference.onnx_precision), which keeps a trained model's export within the parity bar.
+
 Weights above 2 GB (the MASt3R backbone) cannot be one protobuf: the export keeps them out of the
 graphs once traced and writes them to one external-data file beside the models
 (inference.onnx_weights); smaller models stay one self-contained file each.
