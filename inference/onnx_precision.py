@@ -14,8 +14,9 @@ Rewritten (in place, before the graph is split into its parts):
   over the spatial axes, then the float32 scale and bias as before.
 The arithmetic is the same function; only the rounding changes. Each new node keeps the metadata
 of the node it replaces (its stage and layer, read by the exporter's split and its float16 pass).
-Float64 costs little here (the reductions are a small part of the model's time: the live model runs
-as fast as before, docs/live.md). TensorRT has no float64: under ONNX Runtime's TensorRT provider
+Float64 costs little here: `rig model bench` at the preview size, two threads, measured the trained
+model's ONNX Runtime total at 345 and 346 ms with these rewrites and 347 and 329 ms without (point
+init, where the GroupNorms are, 57-58 against 46-51 ms). TensorRT has no float64: under ONNX Runtime's TensorRT provider
 these nodes fall to its CUDA or CPU provider.
 """
 
