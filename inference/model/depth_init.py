@@ -167,7 +167,8 @@ class DepthInit(nn.Module):
         w, h = self.size
         small = (-(-w // scale), -(-h // scale))
         raw, cov = splat_depth(pts, op, left_to_target, resize_intrinsics(target_K, self.size, small), small, self.cfg)
+        # log2(scale) fewer push-pull levels: the coarsest one is as large as at the fine size.
         filled = push_pull_fill(raw, cov, max(self.cfg.fill_levels - (scale.bit_length() - 1), 1))
-        up = (lambda x: F.interpolate(x, size=(h, w), mode="nearest")) if self.cfg.upsample == "nearest" else \
-            (lambda x: F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False))
-        return SplatDepth(up(filled), F.interpolate(cov, size=(h, w), mode="nearest"), F.interpolate(raw, size=(h, w), mode="nearest"))
+        smooth = {"align_corners": False} if self.cfg.upsample == "bilinear" else {}
+        depth = F.interpolate(filled, size=(h, w), mode=self.cfg.upsample, **smooth)
+        return SplatDepth(depth, F.interpolate(cov, size=(h, w), mode="nearest"), F.interpolate(raw, size=(h, w), mode="nearest"))
